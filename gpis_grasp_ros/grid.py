@@ -75,7 +75,7 @@ class GridGeometry:
         return ((xy[..., 0] >= self.origin_x) & (xy[..., 0] <= self.origin_x + self.size_m[0])
                 & (xy[..., 1] >= self.origin_y) & (xy[..., 1] <= self.origin_y + self.size_m[1]))
 
-    def with_shape(self, width: int, height: int) -> 'GridGeometry':
+    def with_shape(self, width: int, height: int) -> GridGeometry:
         """Same metric extent resampled to ``width x height`` cells (square cells, x extent kept)."""
         res = self.size_m[0] / width
         return GridGeometry(self.origin_x, self.origin_y, res, width, height, self.z, self.frame_id)
