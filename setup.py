@@ -21,7 +21,6 @@ setup(
     maintainer_email='maintainers@gpis-grasp-ros.invalid',
     description='Grasp planning under shape uncertainty with GPIS (GP-GPIS-OPT).',
     license='BSD-3-Clause',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'gpis-grasp = gpis_grasp_ros.cli:main',

@@ -86,7 +86,7 @@ if [ "$SYSTEM_ROS" = 0 ]; then
   # and numpy's include dir.
   PY_INC=$(python -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
   NP_INC=$(python -c 'import numpy; print(numpy.get_include())')
-  grep -rl --include='*.cmake' '/opt/python/cp312-cp312' "$VENV/share" 2>/dev/null | while read -r f; do
+  { grep -rl --include='*.cmake' '/opt/python/cp312-cp312' "$VENV/share" 2>/dev/null || true; } | while read -r f; do
     sed -i -e "s#/opt/python/cp312-cp312/lib/python3.12/site-packages/numpy/_core/include#$NP_INC#g" \
            -e "s#/opt/python/cp312-cp312/include/python3.12#$PY_INC#g" "$f"
   done
