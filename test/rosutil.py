@@ -1,0 +1,66 @@
+"""Launch-free ROS test helpers: an isolated rclpy context with a spinning executor."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+
+
+class RosHarness:
+    """Own rclpy Context + MultiThreadedExecutor spun in a background thread."""
+
+    def __init__(self, threads: int = 4) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=threads, context=self.context)
+        self.nodes: list[Node] = []
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # executor shut down under us at teardown
+            pass
+
+    def add(self, node: Node) -> Node:
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def node(self, name: str) -> Node:
+        return self.add(rclpy.create_node(name, context=self.context))
+
+    def call(self, client, request, timeout: float = 60.0):
+        """Call a service through the spinning executor and wait for the answer."""
+        if not client.wait_for_service(timeout_sec=10.0):
+            raise TimeoutError(f'service {client.srv_name} not available')
+        future = client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout):
+            raise TimeoutError(f'no answer from {client.srv_name} within {timeout} s')
+        return future.result()
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        for n in self.nodes:
+            n.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self._thread.join(timeout=5.0)
+
+
+def wait_for(predicate: Callable[[], bool], timeout: float, period: float = 0.02) -> bool:
+    """Poll ``predicate`` until it is true or ``timeout`` seconds passed."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(period)
+    return predicate()
