@@ -43,7 +43,14 @@ def quantisation_step(depth_m: np.ndarray | float) -> np.ndarray:
 
 
 def quantise(depth_m: np.ndarray) -> np.ndarray:
-    """Round depths (m) to the sensor's depth levels; NaN (no return) stays NaN."""
+    """Round depths (m) to the sensor's depth levels; NaN (no return) stays NaN.
+
+    The sensor measures disparity, proportional to 1/z, in integer steps, so the levels are evenly
+    spaced in 1/z; with the step q(z) = k z^2 above that spacing is k (1/m):
+    z_q = 1 / (k * round(1 / (k z))).
+    """
     z = np.asarray(depth_m, dtype=np.float64)
-    step = quantisation_step(np.where(np.isfinite(z), z, 1.0))
-    return np.where(np.isfinite(z), np.round(z / step) * step, np.nan)
+    ok = np.isfinite(z) & (z > 0)
+    k = QUANTISATION_PER_M
+    n = np.round(1.0 / (k * np.where(ok, z, 1.0)))
+    return np.where(ok & (n > 0), 1.0 / (k * np.maximum(n, 1.0)), np.nan)
