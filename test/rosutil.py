@@ -26,8 +26,9 @@ class RosHarness:
     def _spin(self) -> None:
         try:
             self.executor.spin()
-        except Exception:  # executor shut down under us at teardown
-            pass
+        except Exception:  # a callback raised: make it visible in the test output
+            import traceback
+            traceback.print_exc()
 
     def add(self, node: Node) -> Node:
         self.nodes.append(node)

@@ -20,11 +20,13 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image
 from visualization_msgs.msg import MarkerArray
 
-from .. import conversions, planners, viz
+from .. import contacts, conversions, planners, viz
 from ..blur import gpis_blur
 from .common import LATCHED_QOS, declare, run_node
 
 MAX_INITIAL_GRASPS = 1000
+#: Methods whose request field num_initial_grasps means K heuristic grasp samples.
+SAMPLING_METHODS = ('gp-m', 'gp-p')
 MAX_GRASP_SAMPLES = 100000
 
 
@@ -91,10 +93,11 @@ class PlannerNode(Node):
 
     # ------------------------------------------------------------------ service
     def _validate(self, request: GraspPlan.Request) -> tuple[str, int, float] | str:
-        method = (request.method or self.method).strip().lower()
-        if method not in planners.METHODS:
+        try:
+            method = planners.canonical_method((request.method or self.method).strip().lower())
+        except ValueError:
             return f"unknown method '{request.method}'; valid: {', '.join(planners.METHODS)}"
-        sampling = method in planners.SAMPLING_METHODS
+        sampling = method in SAMPLING_METHODS
         default_n = self.num_grasp_samples if sampling else self.num_initial_grasps
         limit = MAX_GRASP_SAMPLES if sampling else MAX_INITIAL_GRASPS
         n = int(request.num_initial_grasps) or int(default_n)
@@ -124,7 +127,7 @@ class PlannerNode(Node):
             response.message = 'planner busy with another request (or a timed-out plan still running); retry later'
             return response
         seed = int(request.seed) if request.seed else int(np.random.SeedSequence().entropy % (2 ** 32))
-        params = self._planner_params(posterior, n, lam, sampling=method in planners.SAMPLING_METHODS)
+        params = self._planner_params(posterior, n, lam, sampling=method in SAMPLING_METHODS)
         outcome: dict = {}
 
         def work() -> None:
@@ -149,17 +152,17 @@ class PlannerNode(Node):
             self.get_logger().error(response.message)
             return response
         result = outcome['result']
-        conversions.fill_grasp_plan_response(response, result, model.header)
+        conversions.fill_grasp_plan_response(response, result, model.header, z=posterior.geometry.z)
         if result.success:
             self._publish_visuals(result, posterior, blur, model.header)
         self.get_logger().info(f'{method}: {response.message} (P_F={result.p_f:.2f}, {result.planning_time:.2f} s)')
         return response
 
     def _planner_params(self, posterior, n: int, lam: float, sampling: bool):
-        return planners.PlannerParams.from_cells(
-            posterior.geometry,
-            jaw_width=self.jaw_width, max_opening=self.max_opening, friction=self.friction,
-            position_noise_cells=self.position_noise_cells, alpha=self.alpha,
+        gripper = contacts.GripperParams(jaw_width=self.jaw_width, max_opening=self.max_opening,
+                                         friction_coef=self.friction, position_noise_cells=self.position_noise_cells)
+        return planners.PlannerParams(
+            gripper=gripper, antipodal_alpha=self.alpha,
             n_initial_grasps=self.num_initial_grasps if sampling else n,
             n_grasp_samples=n if sampling else self.num_grasp_samples,
             n_shape_samples=self.num_shape_samples, uncertainty_penalty=lam)
