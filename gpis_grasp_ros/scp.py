@@ -1,0 +1,357 @@
+"""Sequential convex programming with ℓ1 penalties and a trust region (paper section VI-C, ref. [34]).
+
+Solves, for several independent starting points at once::
+
+    minimise f(x)   subject to   g_i(x) <= 0,  lower <= x <= upper
+
+following Schulman et al., "Finding locally optimal, collision-free trajectories with sequential
+convex optimization" (RSS 2013), Algorithm 1:
+
+* **Penalty loop.** The constraints enter the merit ``φ(x) = f(x) + μ Σ_i max(g_i(x), 0)``
+  (an exact ℓ1 penalty: for μ above the largest Lagrange multiplier its local minima are those
+  of the constrained problem). When the inner loop has converged with a constraint violated by
+  more than ``constraint_tol``, μ is multiplied by ``penalty_factor`` (up to ``penalty_max``)
+  and the trust region is reset.
+* **Convexify loop.** f and g are linearised at the current point with finite differences
+  (user step ``fd_step``; forward by default, central optional). The convex model is
+  ``f + ∇fᵀd + ½ dᵀBd + μ Σ_i max(g_i + ∇g_iᵀd, 0)``, with ``B`` zero (a linear model) or a
+  damped-BFGS (Powell) approximation of the Hessian of the Lagrangian ``f + Σ λ_i g_i``, the
+  multipliers λ being the QP duals of the linearised constraints (``quasi_newton=True``). It
+  is minimised over the trust box ``|d|_∞ <= s`` as a QP with slack variables
+  ``t_i >= max(g_i + ∇g_iᵀd, 0)``. A proximal term keeps the QP strictly convex, which OSQP
+  (ADMM) needs to converge quickly on what would otherwise be a degenerate LP: ``½ ρ_d ‖d‖²`` with
+  ``ρ_d = prox_rel · (‖∇f‖∞ + μ max_i ‖∇g_i‖₁) / s`` (so that, in box-normalised units d/s, the
+  curvature is ``prox_rel`` times the largest linear coefficient and the step still reaches the
+  box when the model says so) and ``½ ρ_t ‖t‖²`` with ``ρ_t = prox_rel · μ / max(|g|, s‖∇g‖₁)``.
+* **Trust region.** The step is accepted when the ratio of actual to predicted merit
+  improvement is at least ``accept_ratio``; the box then grows by ``trust_expand`` (to at most
+  ``trust_radius_max``), otherwise it shrinks by ``trust_shrink``. The convexify loop stops
+  when the predicted improvement falls below ``improve_tol`` (relative to max(1, |φ|)) or the
+  box below ``trust_radius_min``.
+
+**Batching.** All restarts advance in lock-step: one block-diagonal OSQP problem holds every
+restart's subproblem (inactive restarts get a trivial block) and is set up once; each iteration
+only updates its vectors and the constraint-Jacobian values (``OSQP.update``), then solves. The
+objective/constraint function is called on a batch of points (all candidates, or all
+finite-difference points of all restarts, at once), so it can be vectorised by the caller.
+
+Per restart the result reports iterations (QP solves), function evaluations, a convergence
+flag, feasibility and the reason the run stopped.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+#: ``fun(X (B, n)) -> (f (B,), g (B, m))``: objective and constraint values of a batch of points.
+BatchFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+REASON_CONVERGED_MODEL = 'converged: predicted improvement below tolerance'
+REASON_CONVERGED_TRUST = 'converged: trust region below minimum size'
+REASON_PENALTY_LIMIT = 'stopped: constraints violated at the maximum penalty'
+REASON_ITERATION_LIMIT = 'stopped: iteration limit'
+
+
+@dataclass(frozen=True)
+class ScpSettings:
+    """Settings of :func:`scp_minimize` (lengths in the units of x)."""
+
+    fd_step: float | tuple[float, ...] = 1e-6
+    central_differences: bool = False
+    trust_radius_init: float = 1.0
+    trust_radius_min: float = 1e-4
+    trust_radius_max: float = 10.0
+    trust_shrink: float = 0.3
+    trust_expand: float = 2.0
+    accept_ratio: float = 0.1
+    penalty_init: float = 10.0
+    penalty_factor: float = 10.0
+    penalty_max: float = 1e4
+    constraint_tol: float = 1e-4
+    improve_tol: float = 1e-8
+    max_iterations: int = 200
+    quasi_newton: bool = False
+    prox: float = 1e-8
+    prox_rel: float = 0.1
+    osqp_eps: float = 1e-6
+    osqp_max_iter: int = 20000
+
+
+@dataclass
+class ScpResult:
+    """Outcome of :func:`scp_minimize` for R restarts (arrays indexed by restart)."""
+
+    x: np.ndarray
+    fun: np.ndarray
+    constraints: np.ndarray
+    penalty: np.ndarray
+    iterations: np.ndarray
+    evaluations: np.ndarray
+    converged: np.ndarray
+    feasible: np.ndarray
+    reason: list[str]
+    qp_solves: int = 0
+    qp_time: float = 0.0
+    eval_time: float = 0.0
+    history: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def merit(self) -> np.ndarray:
+        """ℓ1 merit f + μ Σ max(g, 0) at the returned points."""
+        return self.fun + self.penalty * np.maximum(self.constraints, 0.0).sum(axis=1)
+
+
+class _BlockQp:
+    """R copies of the trust-region subproblem in one block-diagonal OSQP problem.
+
+    Block variables z = [d (n), t (m)]; rows: ``J d − t <= −g`` (m), ``t >= 0`` (m),
+    ``lo <= d <= hi`` (n). The sparsity pattern is fixed so every iteration is an ``update``.
+    """
+
+    def __init__(self, r: int, n: int, m: int, settings: ScpSettings) -> None:
+        self.r, self.n, self.m = r, n, m
+        self.quasi_newton = settings.quasi_newton
+        self.prox = settings.prox
+        self.prox_rel = settings.prox_rel
+        nv, nc = n + m, 2 * m + n
+        self.nv, self.nc = nv, nc
+        # P: upper triangle of the d block (dense when quasi-Newton, diagonal otherwise) + t diagonal.
+        if self.quasi_newton:
+            self._pi, self._pj = np.triu_indices(n)
+            order = np.lexsort((self._pi, self._pj))  # CSC order: by column, then row
+            self._pi, self._pj = self._pi[order], self._pj[order]
+        else:
+            self._pi = self._pj = np.arange(n)
+        p_rows = np.concatenate([self._pi, np.arange(n, nv)])
+        p_cols = np.concatenate([self._pj, np.arange(n, nv)])
+        offs_v = (np.arange(r) * nv)[:, None]
+        p_data = np.tile(np.concatenate([np.where(self._pi == self._pj, self.prox, 0.0), np.full(m, self.prox)]), r)
+        self.P = sp.csc_matrix((p_data, ((p_rows[None] + offs_v).ravel(), (p_cols[None] + offs_v).ravel())),
+                               shape=(r * nv, r * nv))
+        self.P.sort_indices()
+        # A in CSC order per block: column j of d holds rows 0..m-1 (J[:, j]) and 2m + j (1);
+        # column i of t holds rows i (-1) and m + i (1).
+        col_ptr = [0]
+        rows: list[int] = []
+        for j in range(n):
+            rows.extend(range(m))
+            rows.append(2 * m + j)
+            col_ptr.append(len(rows))
+        for i in range(m):
+            rows.extend([i, m + i])
+            col_ptr.append(len(rows))
+        nnz = len(rows)
+        indices = (np.asarray(rows)[None] + (np.arange(r) * nc)[:, None]).ravel()
+        indptr = np.concatenate([[0], (np.asarray(col_ptr[1:])[None] + (np.arange(r) * nnz)[:, None]).ravel()])
+        self._t_data = np.tile([-1.0, 1.0], m)
+        data = self._a_data(np.zeros((r, m, n)))
+        self.A = sp.csc_matrix((data, indices, indptr), shape=(r * nc, r * nv))
+        self.solver = osqp.OSQP()
+        q, lo, hi = self._vectors(np.zeros((r, n)), np.ones(r), -np.ones((r, m)), np.zeros((r, n)), np.zeros((r, n)))
+        self.solver.setup(self.P, q, self.A, lo, hi, verbose=False, polishing=True, eps_abs=settings.osqp_eps,
+                          eps_rel=settings.osqp_eps, max_iter=settings.osqp_max_iter)
+
+    def _a_data(self, jac: np.ndarray) -> np.ndarray:
+        r, m, n = jac.shape
+        d_cols = np.concatenate([np.transpose(jac, (0, 2, 1)), np.ones((r, n, 1))], axis=2).reshape(r, -1)
+        return np.concatenate([d_cols, np.broadcast_to(self._t_data, (r, 2 * m))], axis=1).ravel()
+
+    def _vectors(self, grad, mu, g, lo, hi):
+        r, m = g.shape
+        q = np.concatenate([grad, np.repeat(mu[:, None], m, axis=1)], axis=1).ravel()
+        low = np.concatenate([np.full((r, m), -np.inf), np.zeros((r, m)), lo], axis=1).ravel()
+        up = np.concatenate([-g, np.full((r, m), np.inf), hi], axis=1).ravel()
+        return q, low, up
+
+    def solve(self, grad, hess, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray]:
+        """Steps d (R, n) and multipliers (R, m) of the linearised constraints of all blocks.
+
+        Inactive blocks: pass zeros and lo = hi = 0.
+        """
+        q, low, up = self._vectors(grad, mu, g, lo, hi)
+        jn = np.abs(jac).sum(axis=2)  # (R, m) ‖∇g_i‖₁
+        rad = np.maximum(radius, 1e-12)
+        lin = np.abs(grad).max(axis=1, initial=0.0) + mu * jn.max(axis=1, initial=0.0)
+        rho_d = np.maximum(self.prox, self.prox_rel * lin / rad)
+        t_scale = np.maximum(np.maximum(np.abs(g), rad[:, None] * jn).max(axis=1, initial=0.0), 1e-12)
+        rho_t = np.maximum(self.prox, self.prox_rel * mu / t_scale)
+        diag = (self._pi == self._pj)[None, :]
+        hp = (hess[:, self._pi, self._pj] if self.quasi_newton else 0.0) + np.where(diag, rho_d[:, None], 0.0)
+        px = np.concatenate([hp, np.repeat(rho_t[:, None], self.m, axis=1)], axis=1).ravel()
+        self.solver.update(q=q, l=low, u=up, Ax=self._a_data(jac), Px=px)
+        res = self.solver.solve(raise_error=False)
+        z = np.asarray(res.x, dtype=np.float64).reshape(self.r, self.nv)
+        d = z[:, :self.n]
+        lam = np.asarray(res.y, dtype=np.float64).reshape(self.r, self.nc)[:, :self.m]
+        if not np.all(np.isfinite(d)):
+            d = np.zeros_like(d)
+        lam = np.where(np.isfinite(lam), np.clip(lam, 0.0, mu[:, None]), 0.0)
+        return np.clip(d, lo, hi), lam
+
+
+def _merit(f: np.ndarray, g: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    m = f + mu * np.maximum(g, 0.0).sum(axis=1)
+    return np.where(np.isfinite(m), m, np.inf)
+
+
+def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | None = None,
+                 lower: np.ndarray | None = None, upper: np.ndarray | None = None,
+                 record_history: bool = False) -> ScpResult:
+    """Run SCP from each row of ``x0`` (R, n); see the module docstring.
+
+    ``fun`` maps a batch of points (B, n) to objective values (B,) and constraint values (B, m)
+    (``g <= 0`` is feasible). ``lower``/``upper`` are hard box bounds on x (kept exactly).
+    """
+    st = ScpSettings() if settings is None else settings
+    x = np.array(x0, dtype=np.float64, ndmin=2)
+    r, n = x.shape
+    lower = np.broadcast_to(-np.inf if lower is None else np.asarray(lower, float), (r, n))
+    upper = np.broadcast_to(np.inf if upper is None else np.asarray(upper, float), (r, n))
+    x = np.clip(x, lower, upper)
+    h = np.broadcast_to(np.asarray(st.fd_step, dtype=np.float64), (n,))
+    evals = np.zeros(r, dtype=np.int64)
+    timers = {'eval': 0.0, 'qp': 0.0}
+
+    def call(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t0 = time.perf_counter()
+        fv, gv = fun(points)
+        timers['eval'] += time.perf_counter() - t0
+        fv = np.asarray(fv, dtype=np.float64).reshape(points.shape[0])
+        gv = np.asarray(gv, dtype=np.float64).reshape(points.shape[0], -1)
+        return fv, gv
+
+    def derivatives(rows: np.ndarray, fv: np.ndarray, gv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Finite-difference gradient (k, n) and Jacobian (k, m, n) at x[rows]."""
+        k = rows.size
+        mg = gv.shape[1]
+        eye = np.eye(n) * h
+        xs = x[rows]
+        if st.central_differences:
+            pts = np.concatenate([xs[:, None, :] + eye[None], xs[:, None, :] - eye[None]], axis=1)
+            fp, gp = call(pts.reshape(-1, n))
+            fp = fp.reshape(k, 2, n)
+            gp = gp.reshape(k, 2, n, mg)
+            grad = (fp[:, 0] - fp[:, 1]) / (2 * h)
+            jac = np.transpose(gp[:, 0] - gp[:, 1], (0, 2, 1)) / (2 * h)
+            evals[rows] += 2 * n
+        else:
+            fp, gp = call((xs[:, None, :] + eye[None]).reshape(-1, n))
+            grad = (fp.reshape(k, n) - fv[:, None]) / h
+            jac = np.transpose(gp.reshape(k, n, mg) - gv[:, None, :], (0, 2, 1)) / h
+            evals[rows] += n
+        bad = ~np.isfinite(grad)
+        grad[bad] = 0.0
+        jac[~np.isfinite(jac)] = 0.0
+        return grad, jac
+
+    f, g = call(x)
+    evals += 1
+    m = g.shape[1]
+    all_rows = np.arange(r)
+    grad, jac = derivatives(all_rows, f, g)
+    hess = np.zeros((r, n, n))
+    mu = np.full(r, st.penalty_init)
+    s = np.full(r, st.trust_radius_init)
+    active = np.ones(r, dtype=bool)
+    iterations = np.zeros(r, dtype=np.int64)
+    converged = np.zeros(r, dtype=bool)
+    reason = [''] * r
+    qp = _BlockQp(r, n, m, st)
+    qp_solves = 0
+    history = [x.copy()] if record_history else []
+
+    while active.any():
+        # Trust-region subproblem for every active restart (inactive blocks are trivial).
+        lo = np.where(active[:, None], np.maximum(-s[:, None], lower - x), 0.0)
+        hi = np.where(active[:, None], np.minimum(s[:, None], upper - x), 0.0)
+        act = active[:, None]
+        t0 = time.perf_counter()
+        d, lam = qp.solve(np.where(act, grad, 0.0), hess, np.where(active[:, None, None], jac, 0.0),
+                     np.where(act, g, -1.0), np.where(active, mu, 1.0), lo, hi, np.where(active, s, 1.0))
+        timers['qp'] += time.perf_counter() - t0
+        qp_solves += 1
+        iterations[active] += 1
+        merit = _merit(f, g, mu)
+        model = (f + np.einsum('rn,rn->r', grad, d) + 0.5 * np.einsum('rn,rnk,rk->r', d, hess, d)
+                 + mu * np.maximum(g + np.einsum('rmn,rn->rm', jac, d), 0.0).sum(axis=1))
+        predicted = merit - model
+        small = active & ~(predicted > st.improve_tol * np.maximum(1.0, np.abs(merit)))
+        cand = np.flatnonzero(active & ~small)
+        accept = np.zeros(r, dtype=bool)
+        reject = np.zeros(r, dtype=bool)
+        if cand.size:
+            xn = np.clip(x[cand] + d[cand], lower[cand], upper[cand])
+            fn, gn = call(xn)
+            evals[cand] += 1
+            actual = merit[cand] - _merit(fn, gn, mu[cand])
+            ok = actual >= st.accept_ratio * predicted[cand]
+            acc = cand[ok]
+            accept[acc] = True
+            reject[cand[~ok]] = True
+            if acc.size:
+                step = xn[ok] - x[acc]
+                x[acc] = xn[ok]
+                f[acc] = fn[ok]
+                g[acc] = gn[ok]
+                s[acc] = np.minimum(s[acc] * st.trust_expand, st.trust_radius_max)
+                lag_old = grad[acc] + np.einsum('km,kmn->kn', lam[acc], jac[acc])
+                grad[acc], jac[acc] = derivatives(acc, f[acc], g[acc])
+                if st.quasi_newton:
+                    lag_new = grad[acc] + np.einsum('km,kmn->kn', lam[acc], jac[acc])
+                    hess[acc] = _damped_bfgs(hess[acc], step, lag_new - lag_old)
+            s[reject] *= st.trust_shrink
+        if record_history:
+            history.append(x.copy())
+        tiny = reject & (s < st.trust_radius_min)
+        inner_done = small | tiny
+        for i in np.flatnonzero(inner_done):
+            if np.max(g[i], initial=-np.inf) <= st.constraint_tol:
+                active[i] = False
+                converged[i] = True
+                reason[i] = REASON_CONVERGED_MODEL if small[i] else REASON_CONVERGED_TRUST
+            elif mu[i] * st.penalty_factor > st.penalty_max * (1 + 1e-12):
+                active[i] = False
+                reason[i] = REASON_PENALTY_LIMIT
+            else:
+                mu[i] *= st.penalty_factor
+                s[i] = max(s[i], st.trust_radius_init)
+        over = active & (iterations >= st.max_iterations)
+        for i in np.flatnonzero(over):
+            active[i] = False
+            reason[i] = REASON_ITERATION_LIMIT
+
+    feasible = np.max(g, axis=1, initial=-np.inf) <= st.constraint_tol
+    return ScpResult(x=x, fun=f, constraints=g, penalty=mu, iterations=iterations, evaluations=evals,
+                     converged=converged, feasible=feasible, reason=reason, qp_solves=qp_solves,
+                     qp_time=timers['qp'], eval_time=timers['eval'], history=history)
+
+
+def _damped_bfgs(b: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Powell-damped BFGS update of Hessian approximations b (k, n, n) (stays positive semidefinite)."""
+    out = b.copy()
+    for i in range(b.shape[0]):
+        bi, si, yi = b[i], s[i], y[i]
+        ss = float(si @ si)
+        if ss <= 1e-300:
+            continue
+        sy = float(si @ yi)
+        if not np.any(bi):
+            if sy <= 1e-12 * ss:
+                continue
+            bi = np.eye(len(si)) * (float(yi @ yi) / sy)
+        bs = bi @ si
+        sbs = float(si @ bs)
+        if sbs <= 1e-300:
+            continue
+        if sy < 0.2 * sbs:
+            theta = 0.8 * sbs / (sbs - sy)
+            yi = theta * yi + (1 - theta) * bs
+            sy = float(si @ yi)
+        out[i] = bi - np.outer(bs, bs) / sbs + np.outer(yi, yi) / sy
+    return out
