@@ -42,10 +42,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f'gpis-grasp demo: bag not found: {args.bag}', file=sys.stderr)
         return 2
     import rclpy
-    from gpis_grasp_interfaces.msg import GpisModel
-    from gpis_grasp_interfaces.srv import ExecuteGrasp, GraspPlan
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from rclpy.parameter import Parameter
+
+    from gpis_grasp_interfaces.msg import GpisModel
+    from gpis_grasp_interfaces.srv import ExecuteGrasp, GraspPlan
 
     from . import conversions, viz
     from .nodes.common import LATCHED_QOS

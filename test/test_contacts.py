@@ -6,10 +6,10 @@ import math
 
 import numpy as np
 import pytest
-from synthetic_shapes import disc_sdf, make_geometry, rectangle_sdf, union
 
 from gpis_grasp_ros.contacts import GripperParams, SdfBank, bilinear, find_contacts, perturb_grasps
 from gpis_grasp_ros.grid import GridGeometry
+from synthetic_shapes import disc_sdf, make_geometry, rectangle_sdf, union
 
 G = make_geometry()  # 25 x 25, 5 mm cells, corner at the origin
 CENTRE = np.array([0.0625, 0.0625])

@@ -75,8 +75,9 @@ def test_gpis_model_round_trip_and_matches_rclpy(typestore):
     assert back.length_scale == msg.length_scale and back.hyperparameters_optimized
 
     # The same bytes decode with rclpy's generated type (live topics == bag files).
-    from gpis_grasp_interfaces.msg import GpisModel
     from rclpy.serialization import deserialize_message, serialize_message
+
+    from gpis_grasp_interfaces.msg import GpisModel
     live = deserialize_message(bytes(raw), GpisModel)
     assert live.header.frame_id == 'cam'
     np.testing.assert_array_equal(np.asarray(live.mean), msg.mean)

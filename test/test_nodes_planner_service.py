@@ -6,10 +6,9 @@ from __future__ import annotations
 import math
 
 import pytest
+
 from gpis_grasp_interfaces.srv import GraspPlan
-
 from gpis_grasp_ros.nodes.planner_node import PlannerNode
-
 from rosutil import RosHarness
 
 

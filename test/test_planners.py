@@ -6,13 +6,6 @@ import math
 
 import numpy as np
 import pytest
-from synthetic_shapes import (
-    certain_rectangle_posterior,
-    make_geometry,
-    make_posterior,
-    rectangle_sdf,
-    transparent_part_posterior,
-)
 
 from gpis_grasp_ros.contacts import GripperParams, SdfBank, bilinear, find_contacts
 from gpis_grasp_ros.grid import GridGeometry
@@ -25,6 +18,13 @@ from gpis_grasp_ros.planners import (
     plan,
     sample_heuristic_grasps,
     sample_valid_grasps,
+)
+from synthetic_shapes import (
+    certain_rectangle_posterior,
+    make_geometry,
+    make_posterior,
+    rectangle_sdf,
+    transparent_part_posterior,
 )
 
 POST, UNCERTAIN = transparent_part_posterior()

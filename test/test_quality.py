@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
-from synthetic_shapes import certain_rectangle_posterior, disc_sdf, make_geometry, make_posterior, rectangle_sdf
 
 from gpis_grasp_ros.bench_planners import pf_python_loop
 from gpis_grasp_ros.contacts import GripperParams, SdfBank, find_contacts
@@ -22,6 +21,7 @@ from gpis_grasp_ros.quality import (
     probability_force_closure,
     torque_scale,
 )
+from synthetic_shapes import certain_rectangle_posterior, disc_sdf, make_geometry, make_posterior, rectangle_sdf
 
 GAMMA = 0.5
 G = make_geometry()

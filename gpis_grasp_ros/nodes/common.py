@@ -56,7 +56,8 @@ def declare(node: Node, name: str, default: Any, description: str, *,
         elif isinstance(default, int):
             descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=0)]
         elif isinstance(default, float):
-            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
+            descriptor.floating_point_range = [
+                FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
     value = node.declare_parameter(name, default, descriptor).value
     if choices and value not in choices:
         raise ValueError(f"parameter '{name}' must be one of {list(choices)}, got '{value}'")

@@ -13,10 +13,11 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 from sensor_msgs.msg import Image
+
+from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
 
 from .. import conversions, gpis, sdf
 from ..blur import gpis_blur

@@ -13,9 +13,10 @@ import threading
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
+from rclpy.node import Node
+
 from gpis_grasp_interfaces.msg import FloatGrid
 from gpis_grasp_interfaces.srv import ExecuteGrasp
-from rclpy.node import Node
 
 from .. import contacts, conversions, planners
 from .common import LATCHED_QOS, declare, run_node

@@ -13,12 +13,13 @@ import threading
 import time
 
 import numpy as np
-from gpis_grasp_interfaces.msg import GpisModel
-from gpis_grasp_interfaces.srv import GraspPlan
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from visualization_msgs.msg import MarkerArray
+
+from gpis_grasp_interfaces.msg import GpisModel
+from gpis_grasp_interfaces.srv import GraspPlan
 
 from .. import contacts, conversions, planners, viz
 from ..blur import gpis_blur

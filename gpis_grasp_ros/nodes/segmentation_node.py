@@ -13,10 +13,11 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-from gpis_grasp_interfaces.msg import FloatGrid
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+from gpis_grasp_interfaces.msg import FloatGrid
 
 from .. import conversions, sensing
 from .common import LATCHED_QOS, declare, run_node, sensor_qos
