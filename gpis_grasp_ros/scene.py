@@ -23,7 +23,7 @@ Materials (:class:`MaterialRegion`, later regions override earlier ones, only in
 ------------------------------------------------------------------------------------------------
 * ``opaque``      default object surface: depth noise from the axial model.
 * ``transparent`` the IR pattern passes: depth is the table's; colour is the table's, tinted
-  by ``TRANSPARENT_TINT`` (15 %) of the region's colour; 3 % refraction drop-outs.
+  by ``TRANSPARENT_TINT`` (30 %) of the region's colour; 3 % refraction drop-outs.
 * ``specular``    the pattern is reflected away: no depth (NaN); colour is a saturated,
   flickering metallic highlight pattern.
 * ``dark``        low IR reflectance: 2.5x depth noise, 15 % drop-outs, colour darkened to 30 %.
@@ -63,7 +63,7 @@ _DROPOUT = np.array([0.0, 0.0, 0.03, 1.0, 0.15, 0.05])
 BASE_DROPOUT = 0.002
 EDGE_DROPOUT = 0.30
 EDGE_THRESHOLD_M = 0.004
-TRANSPARENT_TINT = 0.15
+TRANSPARENT_TINT = 0.30
 RGB_NOISE_SIGMA = 2.0
 SPECULAR_FLICKER_SIGMA = 25.0
 MIN_RANGE_M = 0.35  # Carmine 1.09 working range 0.35 m ... 3.5 m

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -15,9 +16,16 @@ from rclpy.node import Node
 class RosHarness:
     """Own rclpy Context + MultiThreadedExecutor spun in a background thread."""
 
+    _instances = 0
+
     def __init__(self, threads: int = 4) -> None:
+        # Every harness gets its own DDS domain so that latched topics of one test's graph never
+        # reach another's (contexts in one process otherwise share the domain).
+        base = int(os.environ.get('ROS_DOMAIN_ID', '40'))
+        RosHarness._instances += 1
+        self.domain_id = 1 + (base + RosHarness._instances) % 100
         self.context = Context()
-        rclpy.init(context=self.context)
+        rclpy.init(context=self.context, domain_id=self.domain_id)
         self.executor = MultiThreadedExecutor(num_threads=threads, context=self.context)
         self.nodes: list[Node] = []
         self._thread = threading.Thread(target=self._spin, daemon=True)

@@ -19,7 +19,7 @@ from sensor_msgs.msg import Image
 
 from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
 
-from .. import conversions, gpis, sdf
+from .. import conversions, gpis, pipeline
 from ..blur import gpis_blur
 from .common import LATCHED_QOS, declare, run_node
 
@@ -81,10 +81,9 @@ class GpisNode(Node):
             t_noise = conversions.stamp_to_ns(noise_msg.header.stamp)
             if abs(t_occ - t_noise) > self.stamp_tolerance * 1e9:
                 return  # stale or mismatched pair: wait for the partner
-            key = (t_occ, t_noise)
-            if key == self._last_pair:
-                return
-            self._last_pair = key
+            if self._last_pair is not None and self._last_pair[0] is occ_msg and self._last_pair[1] is noise_msg:
+                return  # this exact pair was already used (a replayed bag may repeat stamps)
+            self._last_pair = (occ_msg, noise_msg)
         try:
             occ, geometry = conversions.occupancy_grid_to_numpy(occ_msg)
             noise, noise_geometry = conversions.float_grid_to_numpy(noise_msg)
@@ -101,14 +100,8 @@ class GpisNode(Node):
         self._publish(posterior, occ_msg.header)
 
     def fit(self, occ: np.ndarray, noise: np.ndarray, geometry) -> gpis.GpisPosterior:
-        """Occupancy (0..100, -1 = missing) and noise (m^2, NaN = missing) → GPIS posterior."""
-        missing = (occ < 0) | ~np.isfinite(noise)
-        occupied = (occ >= 50) | missing  # missing measurements count as object (section III-B)
-        distance = sdf.signed_distance(occupied, geometry.resolution)
-        train = ~missing  # ... but are not used for GPIS training
-        if not train.any():
-            raise ValueError('every cell is missing: nothing to train the GPIS on')
-        return gpis.fit_gpis(distance, np.where(train, noise, 0.0), train, geometry, self.params)
+        """Occupancy (0..100, -1 = missing) and noise (m^2, NaN = untrained) → GPIS posterior."""
+        return pipeline.posterior_from_grids(occ, noise, geometry, self.params)
 
     def _publish(self, posterior: gpis.GpisPosterior, header) -> None:
         factory = conversions.RclpyFactory()

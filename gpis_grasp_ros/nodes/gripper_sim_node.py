@@ -32,7 +32,7 @@ class GripperSimNode(Node):
         self.gripper = contacts.GripperParams(
             jaw_width=declare(self, 'jaw_width', 0.01, 'w_j: width of each jaw face (m)', low=0.0, high=0.2),
             max_opening=declare(self, 'max_opening', 0.09, 'w_g: maximum jaw opening (m)', low=0.005, high=0.5),
-            friction=declare(self, 'friction_coefficient', 0.5, 'gamma: Coulomb friction coefficient',
+            friction_coef=declare(self, 'friction_coefficient', 0.5, 'gamma: Coulomb friction coefficient',
                              low=0.0, high=5.0),
             position_noise=declare(self, 'position_noise', 0.003,
                                    'sigma_g: std of the jaw positioning error (m) per axis', low=0.0, high=0.1),

@@ -92,6 +92,11 @@ class PlannerNode(Node):
         self.get_logger().info(f'GPIS received: {g.height}x{g.width} cells of {g.resolution * 1000:.1f} mm '
                                f"in '{g.frame_id}'")
 
+    def has_model(self) -> bool:
+        """Whether a GPIS model has been received and is ready for planning."""
+        with self._lock:
+            return self._posterior is not None
+
     # ------------------------------------------------------------------ service
     def _validate(self, request: GraspPlan.Request) -> tuple[str, int, float] | str:
         try:
@@ -170,7 +175,8 @@ class PlannerNode(Node):
 
     def _publish_visuals(self, result, posterior, blur, header) -> None:
         self.marker_pub.publish(conversions.grasp_markers(result, header, posterior.geometry, self.jaw_width))
-        overlay = viz.grasp_overlay(blur, posterior.geometry, [result], scale=self.image_scale)
+        overlay = viz.grasp_overlay(blur, posterior.geometry, [result], scale=self.image_scale,
+                                    jaw_width_m=self.jaw_width)
         self.image_pub.publish(conversions.numpy_to_image(conversions.RclpyFactory(), overlay, 'rgb8',
                                                           conversions.header(conversions.RclpyFactory(),
                                                                              conversions.stamp_to_ns(header.stamp),

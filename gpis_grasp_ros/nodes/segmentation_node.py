@@ -5,7 +5,8 @@ Subscribes either ``camera/depth/points`` (organized XYZRGB PointCloud2) or
 ``input_mode``), averages ``frames_to_average`` frames (paper section III-B) and publishes latched
 ``object/occupancy`` (nav_msgs/OccupancyGrid: 0..100, -1 = no depth return, counted as object but
 not used for GPIS training) and ``object/noise_map`` (gpis_grasp_interfaces/FloatGrid, m^2 per
-cell, NaN where missing), stamped with the newest frame's stamp and the camera frame.
+cell: variance of the cell's SDF value; NaN = not used for training), stamped with the newest
+frame's stamp and the camera frame.
 """
 
 from __future__ import annotations
@@ -19,10 +20,16 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from gpis_grasp_interfaces.msg import FloatGrid
 
-from .. import conversions, sensing
+from .. import conversions, pipeline, sensing
 from .common import LATCHED_QOS, declare, run_node, sensor_qos
 
 MAX_PENDING_IMAGES = 30
+
+
+def _same_camera(a: sensing.CameraIntrinsics, b: sensing.CameraIntrinsics, tol_px: float = 0.5) -> bool:
+    """Intrinsics equal up to ``tol_px`` (those recovered from each cloud differ by rounding)."""
+    return (a.width, a.height) == (b.width, b.height) and bool(np.allclose(
+        [a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy], atol=tol_px))
 
 
 class SegmentationNode(Node):
@@ -47,13 +54,15 @@ class SegmentationNode(Node):
             height_threshold=declare(self, 'height_threshold', float(defaults.height_threshold),
                                      'depth mask: minimum height above the table (m)', low=0.0, high=0.5),
             color_threshold=declare(self, 'color_threshold', float(defaults.color_threshold),
-                                    'RGB mask: minimum colour distance from the table colour (0-255 units)',
+                                    'RGB mask: minimum colour distance from the table colour (0-255 units); '
+                                    '0 = adaptive to the table texture seen at the image border',
                                     low=0.0, high=442.0),
         )
         self._frames: list[tuple[np.ndarray, np.ndarray]] = []
         self._stamp = None
         self._frame_id = ''
         self._intrinsics = None
+        self._intrinsics_used = None
         self._pending_rgb: dict[int, Image] = {}
         self._pending_depth: dict[int, Image] = {}
         self._lock = threading.Lock()
@@ -123,7 +132,8 @@ class SegmentationNode(Node):
     # ------------------------------------------------------------------ processing
     def _add_frame(self, rgb: np.ndarray, depth: np.ndarray, intrinsics, header) -> None:
         with self._lock:
-            if self._frames and (self._frames[0][0].shape != rgb.shape or self._intrinsics_used != intrinsics):
+            if self._frames and (self._frames[0][0].shape != rgb.shape
+                                 or not _same_camera(self._intrinsics_used, intrinsics)):
                 self.get_logger().warning('camera geometry changed; restarting the frame average')
                 self._frames = []
             self._frames.append((rgb, depth))
@@ -142,11 +152,9 @@ class SegmentationNode(Node):
             return
         factory = conversions.RclpyFactory()
         header_msg = conversions.header(factory, conversions.stamp_to_ns(self._stamp), self._frame_id)
-        occ = np.clip(np.round(result.occupancy * 100), 0, 100).astype(np.int8)
-        occ[result.missing] = -1
-        noise = np.where(result.missing, np.nan, result.noise_variance)
-        self.occupancy_pub.publish(conversions.numpy_to_occupancy_grid(factory, occ, result.geometry, header_msg))
-        self.noise_pub.publish(conversions.numpy_to_float_grid(factory, noise, result.geometry, header_msg, 'm^2'))
+        occ, noise, geometry = pipeline.publishable_grids(result)
+        self.occupancy_pub.publish(conversions.numpy_to_occupancy_grid(factory, occ, geometry, header_msg))
+        self.noise_pub.publish(conversions.numpy_to_float_grid(factory, noise, geometry, header_msg, 'm^2'))
         self.get_logger().info(f'published {result.geometry.height}x{result.geometry.width} occupancy and noise map '
                                f'from {len(frames)} frames ({int(result.missing.sum())} missing cells)')
 
