@@ -64,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     nodes = []
     try:
         seg = SegmentationNode(parameter_overrides=[Parameter('grid_size', value=args.grid_size)])
-        nodes = [seg, GpisNode(), PlannerNode(), GripperSimNode()]
+        planner = PlannerNode()
+        nodes = [seg, GpisNode(), planner, GripperSimNode()]
         client = rclpy.create_node('demo_client')
         nodes.append(client)
         for n in nodes:
@@ -88,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
             log(f'no GPIS within {args.timeout:.0f} s; giving up')
             return 1
         player.stop()
+        while not planner.has_model() and time.perf_counter() - t0 < args.timeout:
+            time.sleep(0.02)
         log(f'GPIS ready after {time.perf_counter() - t0:.1f} s')
         posterior = conversions.gpis_model_to_posterior(models[-1])
 
