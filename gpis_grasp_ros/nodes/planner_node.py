@@ -59,6 +59,9 @@ class PlannerNode(Node):
         self.position_noise_cells = declare(self, 'position_noise_cells', 0.5,
                                             'sigma_g: gripper positioning noise in grid cells (paper: sigma_g^2 = '
                                             '0.25 cells^2)', low=0.0, high=10.0)
+        self.gp_p_adaptive = declare(self, 'gp_p_adaptive', True,
+                                     'GP-P: successive-halving Monte Carlo (true) or every candidate on all S '
+                                     'shape samples as in the paper (false); the final choice uses all S either way')
         self.planning_timeout = declare(self, 'planning_timeout', 60.0,
                                         'seconds after which plan_grasp answers success=false', low=0.1, high=3600.0)
         self.image_scale = declare(self, 'image_scale', 16, 'pixels per grid cell of grasp/image', low=1, high=64)
@@ -171,7 +174,7 @@ class PlannerNode(Node):
             gripper=gripper, antipodal_alpha=self.alpha,
             n_initial_grasps=self.num_initial_grasps if sampling else n,
             n_grasp_samples=n if sampling else self.num_grasp_samples,
-            n_shape_samples=self.num_shape_samples, uncertainty_penalty=lam)
+            n_shape_samples=self.num_shape_samples, uncertainty_penalty=lam, gp_p_adaptive=self.gp_p_adaptive)
 
     def _publish_visuals(self, result, posterior, blur, header) -> None:
         self.marker_pub.publish(conversions.grasp_markers(result, header, posterior.geometry, self.jaw_width))
