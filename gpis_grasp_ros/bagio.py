@@ -224,25 +224,26 @@ def _normalise_topics(topics: Iterable[str] | None) -> set[str] | None:
     return {t if t.startswith('/') else '/' + t for t in topics}
 
 
-def iter_bag(path: str | os.PathLike[str], topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
-    """Raw messages of a bag in time order; ``topics`` selects (with or without leading '/')."""
+def _iter_raw(path: str | os.PathLike[str], topics: Iterable[str] | None) -> Iterator[tuple[Any, int, bytes, Any]]:
+    """``(connection, t_ns, raw, reader)`` of the selected topics in time order."""
     path = Path(path)
     _check_bag_path(path)
     wanted = _normalise_topics(topics)
     with AnyReader([path]) as reader:
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
         for conn, t_ns, raw in reader.messages(connections=conns):
-            yield BagRecord(conn.topic, conn.msgtype, int(t_ns), bytes(raw),
-                            tuple(getattr(conn.ext, 'offered_qos_profiles', ()) or ()))
+            yield conn, int(t_ns), raw, reader
+
+
+def iter_bag(path: str | os.PathLike[str], topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
+    """Raw messages of a bag in time order; ``topics`` selects (with or without leading '/')."""
+    for conn, t_ns, raw, _ in _iter_raw(path, topics):
+        yield BagRecord(conn.topic, conn.msgtype, t_ns, bytes(raw),
+                        tuple(getattr(conn.ext, 'offered_qos_profiles', ()) or ()))
 
 
 def read_messages(path: str | os.PathLike[str],
                   topics: Iterable[str] | None = None) -> Iterator[tuple[str, str, int, Any]]:
     """Deserialized messages ``(topic, msgtype, t_ns, msg)`` in time order (rosbags dataclasses)."""
-    path = Path(path)
-    _check_bag_path(path)
-    wanted = _normalise_topics(topics)
-    with AnyReader([path]) as reader:
-        conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        for conn, t_ns, raw in reader.messages(connections=conns):
-            yield conn.topic, conn.msgtype, int(t_ns), reader.deserialize(raw, conn.msgtype)
+    for conn, t_ns, raw, reader in _iter_raw(path, topics):
+        yield conn.topic, conn.msgtype, t_ns, reader.deserialize(raw, conn.msgtype)

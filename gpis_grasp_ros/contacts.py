@@ -158,6 +158,17 @@ def _pad_extrapolated(grids: np.ndarray, pad: int, resolution: float) -> np.ndar
     return grids[:, ic[:, None], jc[None, :]] + dist[None]
 
 
+def _bilinear_combine(rec: np.ndarray, fx: np.ndarray, fy: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """k0 + k1 fx + (k2 + k3 fx) fy from gathered coefficients ``rec[..., 0:4]``, in place (fx is overwritten)."""
+    np.multiply(rec[..., 3], fx, out=out)
+    out += rec[..., 2]
+    out *= fy
+    np.multiply(rec[..., 1], fx, out=fx)
+    out += fx
+    out += rec[..., 0]
+    return out
+
+
 class _Workspace(threading.local):
     """Per-thread scratch arrays reused between chunks (avoids re-faulting fresh large temporaries)."""
 
@@ -290,14 +301,7 @@ class SdfBank:
         if index is not None:
             i0 += np.asarray(index, dtype=np.intp) * self._cells_padded
         rec = _gather4(self._coef_rec, i0, self._coef_dtype, 'rec')
-        k = [rec[..., n] for n in range(4)]
-        out = ws.get('val', shape) if scratch else np.empty(shape)
-        np.multiply(k[3], fx, out=out)
-        out += k[2]
-        out *= fy
-        np.multiply(k[1], fx, out=fx)
-        out += fx
-        out += k[0]
+        out = _bilinear_combine(rec, fx, fy, ws.get('val', shape) if scratch else np.empty(shape))
         if extra is not None:
             out += extra
         return out
@@ -326,15 +330,7 @@ class SdfBank:
             if offset is not None:
                 flat += offset
         rec = _gather4(self._coef_rec, flat, self._coef_dtype, 'rec32' + tag)
-        k = [rec[..., n] for n in range(4)]
-        out = ws.get('val32' + tag, shape, self._coef_dtype)
-        np.multiply(k[3], fx, out=out)
-        out += k[2]
-        out *= fy
-        np.multiply(k[1], fx, out=fx)
-        out += fx
-        out += k[0]
-        return out
+        return _bilinear_combine(rec, fx, fy, ws.get('val32' + tag, shape, self._coef_dtype))
 
     def values(self, xy: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
         """SDF (m) at metric points ``(..., 2)``."""
