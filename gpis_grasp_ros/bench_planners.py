@@ -125,7 +125,7 @@ def _contacts_loop(sdf: np.ndarray, gx: np.ndarray, gy: np.ndarray, g: GridGeome
         first = min(sign * t for _, t in sides[side])
         wsum = osum = tsum = 0.0
         for o, t in sides[side]:
-            wt = min(max(1.0 - (sign * t - first) / gripper.contact_patch_cells, 0.0), 1.0)
+            wt = min(max(1.0 - (sign * t - first) / gripper.patch_cells(g), 0.0), 1.0)
             wsum += wt
             osum += wt * o
             tsum += wt * t

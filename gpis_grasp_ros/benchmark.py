@@ -57,8 +57,8 @@ green line is the true outline).
 **Scaling run** (``--scaling``): on one object and grid sides M (``SensingParams(grid_size=M)``),
 times of segmentation, GPIS fit (:func:`~gpis_grasp_ros.pipeline.posterior_from_grids`), drawing
 S joint shape samples, GP-G (N_g = 20) and GP-P (brute force and adaptive, K × S as given by
-``--grasp-samples`` / ``--shape-samples``; defaults 1000 × 1000). Each time is the median of
-``--repeats`` runs, except brute-force GP-P (one run: it is the long one). Exponents k of
+``--grasp-samples`` / ``--shape-samples``; defaults 1000 × 1000). Each time is the shortest of
+``--repeats`` runs (other processes on the machine only ever add time). Exponents k of
 t = c M^k come from least squares on log t vs log M (:func:`fit_power_law`); the 70-vs-25 growth
 is compared with the original (Matlab/CVX) implementation's published growth as ratios. Writes
 ``scaling.md``, ``scaling.csv`` and ``scaling.png`` into ``--out``.
@@ -87,7 +87,15 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .blur import gpis_blur
+from .contacts import GripperParams, SdfBank, bilinear, find_contacts
+from .gpis import GpisPosterior, center_of_mass
 from .grid import GridGeometry
+from .pipeline import load_bag, posterior_from_grids, publishable_grids
+from .planners import PlannerParams, execute_grasp_trials, plan
+from .quality import ferrari_canny_l1, torque_scale
+from .sensing import SensingParams, segment_frames
+from .viz import draw_grasp, metric_to_pixel, to_color
 
 # ------------------------------------------------------------------------------------------
 # Methods, reference numbers, settings
@@ -161,10 +169,8 @@ class BenchmarkSettings:
     blur_samples: int = 1000  # joint samples for the GPIS-Blur figures
     com_samples: int = 1000  # joint samples for the centre-of-mass spread
 
-    def planner_params(self, spec: MethodSpec) -> Any:
+    def planner_params(self, spec: MethodSpec) -> PlannerParams:
         """:class:`~gpis_grasp_ros.planners.PlannerParams` of ``spec`` with these settings."""
-        from .planners import PlannerParams
-
         return PlannerParams(n_initial_grasps=self.n_initial_grasps, n_grasp_samples=self.grasp_samples,
                              n_shape_samples=self.shape_samples, uncertainty_penalty=self.uncertainty_penalty,
                              gp_p_adaptive=spec.gp_p_adaptive)
@@ -201,26 +207,19 @@ class TrueShape:
     """Ground truth of a bag prepared for Q_N: SDF bank (m), centre of mass (m) and ρ (m)."""
 
     def __init__(self, sdf: np.ndarray, geometry: GridGeometry, center_of_mass: np.ndarray | None) -> None:
-        from .contacts import SdfBank
-        from .gpis import center_of_mass as sdf_com
-        from .quality import torque_scale
-
         self.sdf = np.asarray(sdf, dtype=np.float64)
         self.geometry = geometry
-        self.com = (sdf_com(self.sdf[None], geometry)[0] if center_of_mass is None
+        self.com = (center_of_mass(self.sdf[None], geometry)[0] if center_of_mass is None
                     else np.asarray(center_of_mass, dtype=np.float64).reshape(2))
         self.rho = torque_scale(self.sdf, geometry, self.com)
         self.bank = SdfBank(self.sdf, geometry)
 
-    def nominal_quality(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Any) -> tuple[float, str]:
+    def nominal_quality(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams) -> tuple[float, str]:
         """Q_N: Ferrari–Canny L1 of the unperturbed grasp (m) on the true shape, and a status.
 
         Status 'ok' (Q_N may still be <= 0: no force closure), else 'no_contact', 'start_inside'
         or 'opening_exceeded' with Q_N = NaN.
         """
-        from .contacts import find_contacts
-        from .quality import ferrari_canny_l1
-
         j1 = np.asarray(jaw1, dtype=np.float64).reshape(1, 2)
         j2 = np.asarray(jaw2, dtype=np.float64).reshape(1, 2)
         if not (np.all(np.isfinite(j1)) and np.all(np.isfinite(j2))):
@@ -240,36 +239,18 @@ class TrueShape:
 
     def iou_on(self, geometry: GridGeometry, mean_sdf: np.ndarray) -> float:
         """IoU of {mean_sdf < 0} with the true shape sampled at the cell centres of ``geometry``."""
-        from .contacts import bilinear
-
         true_inside = bilinear(self.sdf, self.geometry, geometry.cell_centers()) < 0
         mean_inside = np.asarray(mean_sdf) < 0
         union = np.count_nonzero(true_inside | mean_inside)
         return float(np.count_nonzero(true_inside & mean_inside) / union) if union else float('nan')
 
 
-def metric_patch_gripper(gripper: Any, plan_geometry: GridGeometry, true_geometry: GridGeometry) -> Any:
-    """Copy of ``gripper`` whose contact-patch tolerance is the planning model's in metres.
-
-    :class:`~gpis_grasp_ros.contacts.GripperParams` gives the tolerance in cells of whatever grid
-    the jaws close on (0.5 cell), so on the 1 mm ground-truth grid it is 0.5 mm, while the
-    planner's model (0.5 planning cell) tolerates 2-3 mm. This copy rescales it to
-    ``contact_patch_cells`` planning cells, for the sensitivity columns ``*_metric_patch``.
-    """
-    from dataclasses import replace
-
-    scale = plan_geometry.resolution / true_geometry.resolution
-    return replace(gripper, contact_patch_cells=gripper.contact_patch_cells * scale)
-
-
-def com_statistics(posterior: Any, n: int, rng: np.random.Generator, chunk: int = 250) -> tuple[float, float]:
+def com_statistics(posterior: GpisPosterior, n: int, rng: np.random.Generator, chunk: int = 250) -> tuple[float, float]:
     """RMS and 95th percentile (m) of |z(f_i) − z(μ)| over ``n`` joint shape samples f_i.
 
     The RMS is :func:`~gpis_grasp_ros.gpis.com_spread`'s definition (condition 1 of section
     VI-A); the percentile is the radius of the paper's 95 % confidence region of the COM.
     """
-    from .gpis import center_of_mass
-
     ref = posterior.center_of_mass()
     dist = []
     for start in range(0, n, chunk):
@@ -338,11 +319,6 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
 
     ``report((object, method_key))`` is called after all seeds of a method are done.
     """
-    from .blur import gpis_blur
-    from .pipeline import load_bag, posterior_from_grids, publishable_grids
-    from .planners import execute_grasp_trials, plan
-    from .sensing import SensingParams, segment_frames
-
     t_object = time.perf_counter()
     s = task.settings
     bag = Path(task.bag)
@@ -373,9 +349,8 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
     rows: list[dict[str, Any]] = []
     grasps: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     base_gripper = s.planner_params(METHODS[0]).gripper
-    exec_gripper = base_gripper.resolved(geometry)  # σ_g = 0.5 planning cell, in metres
-    patch_gripper = (metric_patch_gripper(exec_gripper, geometry, truth.geometry) if truth is not None
-                     else exec_gripper)
+    # σ_g and the contact-patch tolerance = 0.5 planning cell, fixed in metres for the true grid
+    exec_gripper = base_gripper.resolved(geometry)
     for spec in METHODS:
         params = s.planner_params(spec)
         for seed in range(s.seeds):
@@ -391,19 +366,14 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
                 'n_candidates': int(r.n_candidates),
             }
             if truth is not None and r.success:
-                q_n, status = truth.nominal_quality(r.jaw1, r.jaw2, base_gripper)
-                q_n_mp, _ = truth.nominal_quality(r.jaw1, r.jaw2, patch_gripper)
+                q_n, status = truth.nominal_quality(r.jaw1, r.jaw2, exec_gripper)
                 gripper_seed = derive_seed('gripper', seed, name)
                 succ = execute_grasp_trials(truth.sdf, truth.geometry, r.jaw1, r.jaw2, exec_gripper, s.trials,
                                             np.random.default_rng(gripper_seed), center_of_mass=truth.com)
-                succ_mp = execute_grasp_trials(truth.sdf, truth.geometry, r.jaw1, r.jaw2, patch_gripper, s.trials,
-                                               np.random.default_rng(gripper_seed), center_of_mass=truth.com)
             else:
                 q_n, status, succ = float('nan'), 'no_grasp' if truth is not None else 'no_ground_truth', 0
-                q_n_mp, succ_mp = float('nan'), 0
             row.update({'q_n': q_n, 'q_n_status': status, 'sim_successes': int(succ), 'sim_trials': s.trials,
                         'sim_success_rate': succ / s.trials if s.trials > 0 else float('nan'),
-                        'q_n_metric_patch': q_n_mp, 'sim_successes_metric_patch': int(succ_mp),
                         'planning_time_s': float(r.planning_time), 'evaluation_time_s': float(r.evaluation_time)})
             rows.append(row)
             if seed == 0 and r.success:
@@ -569,8 +539,6 @@ class Cell:
     q_n_fc: int  # seeds whose grasp is in force closure on the true shape (Q_N > 0)
     sim_successes: int
     sim_trials: int
-    sim_successes_metric_patch: int  # same executions, contact-patch tolerance in metres (sensitivity)
-    q_n_metric_patch: float
     time_worst: float
     time_median: float
     n_seeds: int
@@ -594,9 +562,6 @@ def aggregate(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str], Cell]:
                         q_n=float(np.mean(np.nan_to_num(qn, nan=0.0))), q_n_fc=int(np.count_nonzero(qn > 0)),
                         sim_successes=int(sum(r['sim_successes'] for r in rs)),
                         sim_trials=int(sum(r['sim_trials'] for r in rs)),
-                        sim_successes_metric_patch=int(sum(r['sim_successes_metric_patch'] for r in rs)),
-                        q_n_metric_patch=float(np.mean(np.nan_to_num(
-                            np.array([r['q_n_metric_patch'] for r in rs], dtype=np.float64), nan=0.0))),
                         time_worst=float(t.max()), time_median=float(np.median(t)), n_seeds=len(rs),
                         failures=sum(1 for r in rs if not r['success']))
     return out
@@ -611,12 +576,16 @@ def goal_figures(result: BenchmarkResult) -> dict[str, Any]:
     within = [o for o in objs if cells[(o, 'gp-g')].p_f >= cells[(o, 'gp-p')].p_f - 0.05]
     above_m = [o for o in objs if cells[(o, 'gp-g')].p_f > cells[(o, 'gp-m')].p_f]
     ratios = {by[o].letter: cells[(o, 'gp-p')].time_worst / max(cells[(o, 'gp-g')].time_worst, 1e-9) for o in objs}
+    med = [cells[(o, 'gp-p')].time_median / max(cells[(o, 'gp-g')].time_median, 1e-9) for o in objs]
     out: dict[str, Any] = {
+        'time_ratio_median_mean': float(np.mean(med)) if med else float('nan'),
         'n_objects': n,
         'gp_g_within_0.05_of_gp_p': [by[o].letter for o in within],
         'gp_g_above_gp_m': [by[o].letter for o in above_m],
         'time_ratio_gp_p_over_gp_g_worst': ratios,
         'time_ratio_mean': float(np.mean(list(ratios.values()))) if ratios else float('nan'),
+        'time_ratio_median_per_object': {by[o].letter: cells[(o, 'gp-p')].time_median
+                                         / max(cells[(o, 'gp-g')].time_median, 1e-9) for o in objs},
         'time_ratio_of_mean_times': float(np.mean([cells[(o, 'gp-p')].time_worst for o in objs])
                                           / max(np.mean([cells[(o, 'gp-g')].time_worst for o in objs]), 1e-9)),
     }
@@ -693,7 +662,8 @@ def table1_markdown(result: BenchmarkResult) -> str:
               f'({", ".join(g["gp_g_within_0.05_of_gp_p"]) or "none"}); GP-G P_F > GP-M on '
               f'{len(g["gp_g_above_gp_m"])} of {n} ({", ".join(g["gp_g_above_gp_m"]) or "none"}). '
               f'Worst-case time ratio GP-P / GP-G: mean over objects {g["time_ratio_mean"]:.1f}x '
-              f'(ratio of the mean times {g["time_ratio_of_mean_times"]:.1f}x; paper: 5.7x).', '']
+              f'(ratio of the mean worst-case times {g["time_ratio_of_mean_times"]:.1f}x; mean over objects of the '
+              f'median-time ratio {g["time_ratio_median_mean"]:.1f}x; paper: 5.7x).', '']
 
     extra = [METHOD_BY_KEY[k] for k in ('gp-m', 'gp-d', 'gp-u', 'gp-p', 'gp-p-adaptive', 'gp-g', 'gp-g-reranked')]
     lines += ['## Beyond the paper: re-ranked GP-G, adaptive GP-P, centre-of-mass spread', '',
@@ -729,14 +699,6 @@ def table1_markdown(result: BenchmarkResult) -> str:
               'mass), summed over seeds.', '']
     rows = [[o.letter] + [_rate(cells[(o.object, m.key)].sim_successes, cells[(o.object, m.key)].sim_trials)
                           for m in extra] for o in objs]
-    lines += _table(header, rows)
-
-    lines += ['', '### Sensitivity: contact-patch tolerance fixed in metres', '',
-              'The same executions (same perturbations) with the jaw contact-patch tolerance set to 0.5 *planning* '
-              'cell in metres instead of 0.5 cell of the 1 mm ground-truth grid (see docs/results.md): successes / '
-              'executions, and mean Q_N in brackets.', '']
-    rows = [[o.letter] + [f'{_rate(c.sim_successes_metric_patch, c.sim_trials)} [{_f2(c.q_n_metric_patch)}]'
-                          for c in (cells[(o.object, m.key)] for m in extra)] for o in objs]
     lines += _table(header, rows)
 
     lines += ['', '## Q_F on the GPIS mean shape', '', 'Mean over seeds (— : degenerate on the mean).', '']
@@ -852,7 +814,7 @@ class Axes:
         return self.px(self.xlim[0], y)[1]
 
     def xpx(self, x: float) -> int:
-        return self.px(x, self.ylim[0] if not self.ylog else self.ylim[0])[0]
+        return self.px(x, self.ylim[0])[0]
 
     def frame(self, title: str, ylabel: str, xlabel: str = '', yticks: Sequence[float] | None = None,
               xticks: Sequence[tuple[float, str]] | None = None, minor_log_grid: bool = True) -> None:
@@ -1022,8 +984,6 @@ def grasp_panel(blur: np.ndarray, geometry: GridGeometry, outline: Sequence[np.n
                 grasp: tuple[np.ndarray, np.ndarray] | None, color: tuple[int, int, int], title: str, subtitle: str,
                 jaw_width: float, panel_px: int = 240) -> np.ndarray:
     """One Fig. 4 panel (BGR): GPIS-Blur, true outline (green), the grasp, a title and a subtitle."""
-    from .viz import draw_grasp, metric_to_pixel, to_color
-
     h, w = geometry.shape
     scale = max(1, int(round(panel_px / max(h, w))))
     img = cv2.resize(to_color(blur), (w * scale, h * scale), interpolation=cv2.INTER_LINEAR)
@@ -1118,22 +1078,19 @@ SCALING_QUANTITIES: tuple[tuple[str, str, tuple[int, int, int]], ...] = (
 )
 
 
-def _median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
+def _best_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
+    """Shortest wall time (s) of ``repeats`` calls and the last result (other load only adds time)."""
     times, out = [], None
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
         out = fn()
         times.append(time.perf_counter() - t0)
-    return float(np.median(times)), out
+    return float(min(times)), out
 
 
 def run_scaling(bag: str | os.PathLike[str], sizes: Sequence[int], settings: BenchmarkSettings = BenchmarkSettings(),
                 repeats: int = 3, progress: bool = True) -> list[dict[str, Any]]:
     """Times (s) of the pipeline stages and planners vs the grid side M on one bag (one BLAS thread)."""
-    from .pipeline import load_bag, posterior_from_grids, publishable_grids
-    from .planners import plan
-    from .sensing import SensingParams, segment_frames
-
     scene = load_bag(bag)
     name = Path(bag).stem
     bar = ProgressBar(len(sizes), unit='grid sizes', enabled=progress)
@@ -1141,33 +1098,29 @@ def run_scaling(bag: str | os.PathLike[str], sizes: Sequence[int], settings: Ben
     with _blas_one_thread():
         for m in sizes:
             params = SensingParams(grid_size=int(m))
-            t_seg, grids = _median_time(lambda p=params: publishable_grids(
+            t_seg, grids = _best_time(lambda p=params: publishable_grids(
                 segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, p, frame_id=scene.frame_id)),
                 repeats)
-            t_fit, posterior = _median_time(lambda g=grids: posterior_from_grids(*g), repeats)
+            t_fit, posterior = _best_time(lambda g=grids: posterior_from_grids(*g), repeats)
             rng_seed = derive_seed('scaling', name, int(m))
-            t_samp, _ = _median_time(lambda po=posterior, sd=rng_seed: po.sample(settings.shape_samples,
+            t_samp, _ = _best_time(lambda po=posterior, sd=rng_seed: po.sample(settings.shape_samples,
                                                                                  np.random.default_rng(sd)), repeats)
-            g_spec, p_spec, pa_spec = (METHOD_BY_KEY[k] for k in ('gp-g', 'gp-p', 'gp-p-adaptive'))
-            g_times, g_res = [], None
-            for _ in range(max(1, repeats)):
-                g_res = plan(g_spec.planner, posterior, settings.planner_params(g_spec), seed=rng_seed)
-                g_times.append(g_res.planning_time)
-            pa_times, pa_res = [], None
-            for _ in range(max(1, repeats)):
-                pa_res = plan(pa_spec.planner, posterior, settings.planner_params(pa_spec), seed=rng_seed)
-                pa_times.append(pa_res.planning_time)
-            p_res = plan(p_spec.planner, posterior, settings.planner_params(p_spec), seed=rng_seed)
+            planned = {}
+            for key in ('gp-g', 'gp-p-adaptive', 'gp-p'):
+                spec = METHOD_BY_KEY[key]
+                runs = [plan(spec.planner, posterior, settings.planner_params(spec), seed=rng_seed)
+                        for _ in range(max(1, repeats))]
+                planned[key] = (min(r.planning_time for r in runs), runs[-1])
+            (t_g, g_res), (t_pa, pa_res), (t_p, p_res) = (planned[k] for k in ('gp-g', 'gp-p-adaptive', 'gp-p'))
             rows.append({
                 'object': name, 'M': int(m), 'cells': int(m) ** 2, 'resolution_m': posterior.geometry.resolution,
                 'rank': int(posterior.rank), 'approximation': posterior.approximation,
                 'n_train': int(posterior.train_xy.shape[0]),
                 'segmentation_s': t_seg, 'gpis_fit_s': t_fit, 'sample_s': t_samp,
-                'gp_g_s': float(np.median(g_times)),
-                'gp_g_per_init_s': float(np.median(g_times)) / settings.n_initial_grasps,
+                'gp_g_s': t_g, 'gp_g_per_init_s': t_g / settings.n_initial_grasps,
                 'gp_g_iterations': int(g_res.iterations), 'gp_g_p_f': float(g_res.p_f),
-                'gp_p_s': float(p_res.planning_time), 'gp_p_p_f': float(p_res.p_f),
-                'gp_p_adaptive_s': float(np.median(pa_times)), 'gp_p_adaptive_p_f': float(pa_res.p_f),
+                'gp_p_s': t_p, 'gp_p_p_f': float(p_res.p_f),
+                'gp_p_adaptive_s': t_pa, 'gp_p_adaptive_p_f': float(pa_res.p_f),
                 'grasp_samples': settings.grasp_samples, 'shape_samples': settings.shape_samples,
             })
             bar.advance(f'M={m}')
@@ -1183,9 +1136,9 @@ def scaling_markdown(rows: Sequence[dict[str, Any]], settings: BenchmarkSettings
     lines = [f'# Runtime vs grid side M ({name})', '',
              f'GPIS built as the nodes build it with SensingParams(grid_size=M); GP-G with N_g = '
              f'{settings.n_initial_grasps}; GP-P with K = {settings.grasp_samples} candidates x S = '
-             f'{settings.shape_samples} shape samples (brute force: one run; adaptive: median); "S joint samples" = '
-             f'drawing S = {settings.shape_samples} joint GPIS samples. Median of {repeats} run(s) unless stated; one '
-             'BLAS thread; times in seconds.', '']
+             f'{settings.shape_samples} shape samples (brute force and adaptive successive halving); "S joint '
+             f'samples" = drawing S = {settings.shape_samples} joint GPIS samples. Best (shortest) of {repeats} '
+             'run(s) of each, one BLAS thread, times in seconds (planning time of the planners, as in Table I).', '']
     header = ['M', 'cells', 'rank r', 'segmentation', 'GPIS fit', 'S samples', 'GP-G', 'GP-G per init',
               'GP-P brute', 'GP-P adaptive', 'GP-P / GP-G']
     body = [[str(r['M']), str(r['cells']), str(r['rank']), _time(r['segmentation_s']), _time(r['gpis_fit_s']),
@@ -1248,23 +1201,28 @@ def scaling_chart(rows: Sequence[dict[str, Any]]) -> np.ndarray:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog='gpis-grasp benchmark', description=__doc__.splitlines()[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = argparse.ArgumentParser(prog='gpis-grasp benchmark', description=__doc__.splitlines()[0])
     p.add_argument('--bags', nargs='+', type=Path, default=None, help='bags to run (default: bags/*.mcap)')
-    p.add_argument('--out', type=Path, default=Path('out/benchmark'), help='output directory')
-    p.add_argument('--workers', type=int, default=os.cpu_count() or 1, help='worker processes (1 = serial)')
-    p.add_argument('--seeds', type=int, default=3, help='seeds per object and method (0 .. N-1)')
-    p.add_argument('--grasp-samples', type=int, default=1000, help='K heuristic grasp candidates of GP-M / GP-P')
-    p.add_argument('--shape-samples', type=int, default=1000, help='S shape samples of every Monte-Carlo P_F')
-    p.add_argument('--trials', type=int, default=20, help='simulated executions per grasp and seed')
-    p.add_argument('--grid-size', type=int, default=25, help='M of the M x M GPIS grid (Table I run)')
-    p.add_argument('--blur-samples', type=int, default=1000, help='joint samples of the GPIS-Blur figures')
+    p.add_argument('--out', type=Path, default=Path('out/benchmark'), help='output directory (default: out/benchmark)')
+    p.add_argument('--workers', type=int, default=os.cpu_count() or 1,
+                   help='worker processes, 1 = serial in this process (default: os.cpu_count())')
+    p.add_argument('--seeds', type=int, default=3, help='seeds 0 .. N-1 per object and method (default: 3)')
+    p.add_argument('--grasp-samples', type=int, default=1000,
+                   help='K heuristic grasp candidates of GP-M / GP-P (default: 1000)')
+    p.add_argument('--shape-samples', type=int, default=1000,
+                   help='S shape samples of every Monte-Carlo P_F (default: 1000)')
+    p.add_argument('--trials', type=int, default=20, help='simulated executions per grasp and seed (default: 20)')
+    p.add_argument('--grid-size', type=int, default=25, help='M of the M x M GPIS grid, Table I run (default: 25)')
+    p.add_argument('--blur-samples', type=int, default=1000,
+                   help='joint samples of the GPIS-Blur figures (default: 1000)')
     p.add_argument('--no-figures', action='store_true', help='skip the PNG figures')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.add_argument('--scaling', action='store_true', help='run the runtime-vs-M study instead of Table I')
-    p.add_argument('--object', default='A', help='scaling: object letter or bag path')
-    p.add_argument('--sizes', default='25,40,55,70,100', help='scaling: comma-separated grid sides M')
-    p.add_argument('--repeats', type=int, default=3, help='scaling: runs per timing (median)')
+    p.add_argument('--object', default='A', help='scaling: object letter or bag path (default: A)')
+    p.add_argument('--sizes', default='25,40,55,70,100',
+                   help='scaling: comma-separated grid sides M (default: 25,40,55,70,100)')
+    p.add_argument('--repeats', type=int, default=3,
+                   help='scaling: runs per timing, the shortest is kept (default: 3)')
     args = p.parse_args(argv)
     for name in ('seeds', 'grasp_samples', 'shape_samples', 'workers', 'grid_size', 'blur_samples', 'repeats'):
         if getattr(args, name) < 1:

@@ -18,7 +18,9 @@ Choices where the paper is silent (documented here, relied on by :mod:`quality` 
   from both ends. The first contact anywhere across the face wins.
 * **Contact patch.** A rigid flat jaw meeting a flat face touches along a segment, not at the
   corner line that happens to cross first. Lines whose crossing lies within
-  ``contact_patch_cells`` (0.5 cell) of the first touch form the patch, weighted by a linear
+  ``contact_patch_cells`` (0.5 cell; or ``contact_patch`` in m, which :meth:`GripperParams.resolved`
+  fixes from the planning grid so executions on a finer true grid model the same jaw) of the
+  first touch form the patch, weighted by a linear
   ramp (1 at the first touch, 0 at the tolerance); the contact is the patch centre. A spike
   hit by one edge line is still the contact (nothing else is within the tolerance), a flat face
   gives the centre of the jaw, and the contact moves continuously with the jaws (needed for
@@ -88,6 +90,7 @@ class GripperParams:
     march_step_cells: float = 1.0  # sampling step along the closing line, cells
     face_line_spacing_cells: float = 1.0  # max spacing of the march lines across a jaw face, cells
     contact_patch_cells: float = 0.5  # lines touching within this distance of the first touch form the patch
+    contact_patch: float | None = None  # the same tolerance in m; None -> contact_patch_cells * resolution
 
     def __post_init__(self) -> None:
         if not self.jaw_width >= 0:
@@ -98,6 +101,8 @@ class GripperParams:
             raise ValueError(f'friction coefficient must be > 0, got {self.friction_coef}')
         if self.position_noise is not None and not self.position_noise >= 0:
             raise ValueError(f'position noise must be >= 0 m, got {self.position_noise}')
+        if self.contact_patch is not None and not self.contact_patch > 0:
+            raise ValueError(f'contact patch tolerance must be > 0 m, got {self.contact_patch}')
         if not (self.march_step_cells > 0 and self.face_line_spacing_cells > 0):
             raise ValueError('march step and face line spacing must be positive')
 
@@ -117,9 +122,17 @@ class GripperParams:
             return float(self.position_noise)
         return self.position_noise_from_cells(self.position_noise_cells, geometry)
 
+    def patch_cells(self, geometry: GridGeometry) -> float:
+        """Contact-patch tolerance in cells of ``geometry`` (the grid the jaws close on)."""
+        if self.contact_patch is not None:
+            return float(self.contact_patch) / geometry.resolution
+        return float(self.contact_patch_cells)
+
     def resolved(self, geometry: GridGeometry) -> GripperParams:
-        """Copy with ``position_noise`` fixed in metres (use before executing on another grid)."""
-        return replace(self, position_noise=self.sigma_g(geometry))
+        """Copy with ``position_noise`` and ``contact_patch`` fixed in metres on the planning grid
+        ``geometry`` (use before executing on another grid, e.g. the 1 mm ground truth)."""
+        return replace(self, position_noise=self.sigma_g(geometry),
+                       contact_patch=self.patch_cells(geometry) * geometry.resolution)
 
     def face_offsets(self, geometry: GridGeometry) -> np.ndarray:
         """Lateral offsets (m) of the march lines across a jaw face, centred on the jaw."""
@@ -443,7 +456,7 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     chunk = max(1, MAX_POINTS_PER_CHUNK // (n_lines * n_steps))
 
     parts = [_march_chunk(bank, a[s:s + chunk], unit[s:s + chunk], length[s:s + chunk], n_seg[s:s + chunk],
-                          offsets, n_steps, None if idx is None else idx[s:s + chunk], gripper.contact_patch_cells)
+                          offsets, n_steps, None if idx is None else idx[s:s + chunk], gripper.patch_cells(g))
              for s in range(0, t_total, chunk)]
     if len(parts) == 1:
         c, no_contact, inside, clear = parts[0]

@@ -439,7 +439,7 @@ def _scp_settings(params: PlannerParams) -> ScpSettings:
                        trust_radius_max=params.trust_radius_max_cells, max_iterations=params.max_scp_iterations,
                        constraint_tol=params.constraint_tol, penalty_init=10.0, penalty_factor=10.0,
                        penalty_max=1e3, improve_tol=1e-5, accept_ratio=0.1, trust_shrink=0.3, trust_expand=2.0,
-                       prox=1e-8, prox_rel=0.1, osqp_eps=1e-4)
+                       prox=1e-8, prox_rel=0.1, osqp_eps=1e-4, osqp_max_iter=4000)
 
 
 def _optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, antipodal: bool,

@@ -36,6 +36,9 @@ class GripperSimNode(Node):
                              low=0.0, high=5.0),
             position_noise=declare(self, 'position_noise', 0.003,
                                    'sigma_g: std of the jaw positioning error (m) per axis', low=0.0, high=0.1),
+            contact_patch=declare(self, 'contact_patch', 0.003,
+                                  'pad compliance (m): surface points within this distance of the first touch '
+                                  'share the contact (the planner uses half a GPIS cell)', low=1e-5, high=0.05),
         )
         self._lock = threading.Lock()
         self._sdf = None
