@@ -574,11 +574,13 @@ def fill_grasp_plan_response(response: Any, result: Any, header: Any, z: float |
 
 
 def grasp_markers(result: Any, header: Any, geometry: GridGeometry, jaw_width: float,
-                  jaw_thickness: float = 0.004, jaw_height: float = 0.02) -> Any:
-    """RViz ``visualization_msgs/MarkerArray`` (rclpy) of a planned grasp: two jaw plates (CUBE),
-    the closing arrow jaw1 → jaw2 and a text label with the method and P_F. Sizes in m; drawn
-    half a jaw height above the table plane (``geometry.z``; the optical z axis points down).
-    The first marker deletes earlier ones in the namespace."""
+                  jaw_thickness: float = 0.004, jaw_height: float = 0.02,
+                  contacts_xy: np.ndarray | None = None) -> Any:
+    """RViz ``visualization_msgs/MarkerArray`` (rclpy) of a planned grasp: two jaw plates (CUBE)
+    and the closing arrow jaw1 → jaw2, coloured by P_F (red 0 → yellow → green 1), the contacts
+    ``contacts_xy`` ((2, 2) m, e.g. on the mean shape; skipped when None or not finite) as spheres,
+    and a text label with the method and P_F. Sizes in m; drawn half a jaw height above the table
+    plane (``geometry.z``; the optical z axis points down). The first marker deletes earlier ones."""
     f = RclpyFactory()
     z = float(geometry.z) - jaw_height / 2.0
     axis = np.asarray(result.axis, dtype=np.float64)
@@ -592,16 +594,24 @@ def grasp_markers(result: Any, header: Any, geometry: GridGeometry, jaw_width: f
 
     clear = f.new('visualization_msgs/msg/Marker', header=header, ns='grasp', id=0, action=3)
     markers = [clear]
+    p_f = float(np.clip(np.nan_to_num(float(result.p_f)), 0.0, 1.0))
+    pf_rgb = (min(1.0, 2.0 * (1.0 - p_f)), min(1.0, 2.0 * p_f), 0.1)
     if bool(result.success):
         for mid, jaw in ((1, result.jaw1), (2, result.jaw2)):
             pose = _pose_stamped(f, header, jaw, z, axis).pose
-            markers.append(marker(mid, 1, pose=pose, color=color(0.1, 0.6, 1.0),
+            markers.append(marker(mid, 1, pose=pose, color=color(*pf_rgb),
                                   scale=f.new('geometry_msgs/msg/Vector3', x=float(jaw_thickness),
                                               y=float(jaw_width), z=float(jaw_height))))
         points = [f.new('geometry_msgs/msg/Point', x=float(p[0]), y=float(p[1]), z=z)
                   for p in (np.asarray(result.jaw1, dtype=np.float64), np.asarray(result.jaw2, dtype=np.float64))]
-        markers.append(marker(3, 0, points=points, color=color(1.0, 0.5, 0.0),
+        markers.append(marker(3, 0, points=points, color=color(*pf_rgb),
                               scale=f.new('geometry_msgs/msg/Vector3', x=0.002, y=0.005, z=0.006)))
+        if contacts_xy is not None:
+            for mid, c in enumerate(np.asarray(contacts_xy, dtype=np.float64).reshape(-1, 2), start=5):
+                if np.all(np.isfinite(c)):
+                    pose = _pose_stamped(f, header, c, z, axis).pose
+                    markers.append(marker(mid, 2, pose=pose, color=color(1.0, 1.0, 1.0),
+                                          scale=f.new('geometry_msgs/msg/Vector3', x=0.004, y=0.004, z=0.004)))
         centre = _pose_stamped(f, header, result.center, z - jaw_height, axis).pose
         markers.append(marker(4, 9, pose=centre, color=color(1.0, 1.0, 1.0),
                               scale=f.new('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.01),

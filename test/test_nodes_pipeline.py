@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 from nav_msgs.msg import OccupancyGrid
 from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+from visualization_msgs.msg import Marker, MarkerArray
 
 from gpis_grasp_interfaces.msg import GpisModel
 from gpis_grasp_interfaces.srv import ExecuteGrasp, GraspPlan
@@ -46,6 +48,10 @@ class Loop:
         self.occupancy: list = []
         self.client.create_subscription(GpisModel, 'gpis/model', self.models.append, LATCHED_QOS)
         self.client.create_subscription(OccupancyGrid, 'object/occupancy', self.occupancy.append, LATCHED_QOS)
+        self.markers: list = []
+        self.images: list = []
+        self.client.create_subscription(MarkerArray, 'grasp/markers', self.markers.append, LATCHED_QOS)
+        self.client.create_subscription(Image, 'grasp/image', self.images.append, LATCHED_QOS)
         self.plan_cli = self.client.create_client(GraspPlan, 'plan_grasp')
         self.exec_cli = self.client.create_client(ExecuteGrasp, 'execute_grasp')
         self.player = BagPlayer(self.client, bag, rate=0.0, reliable=True, wait_for_subscribers=5.0)
@@ -140,6 +146,33 @@ def test_unknown_method_and_node_keeps_serving(loop_a):
     bad = loop_a.plan('gp-nonsense')
     assert not bad.success and 'unknown method' in bad.message
     assert loop_a.plan('gp-m').success
+
+
+def test_grasp_visuals_published(loop_a):
+    n_markers, n_images = len(loop_a.markers), len(loop_a.images)
+    plan = loop_a.plan('gp-gpis-opt', seed=5)
+    assert plan.success
+    assert wait_for(lambda: len(loop_a.markers) > n_markers and len(loop_a.images) > n_images, 10.0)
+    markers = loop_a.markers[-1].markers
+    jaws = [m for m in markers if m.type == Marker.CUBE]
+    touches = [m for m in markers if m.type == Marker.SPHERE]
+    assert len(jaws) == 2 and len(touches) == 2
+    for jaw, pose in zip(jaws, (plan.jaw1, plan.jaw2), strict=True):
+        assert jaw.pose.position.x == pytest.approx(pose.pose.position.x)
+        assert jaw.header.frame_id == 'camera_rgb_optical_frame'
+    # coloured by P_F: green dominates for a likely grasp
+    p_f = plan.probability_force_closure
+    assert jaws[0].color.g == pytest.approx(min(1.0, 2 * p_f), abs=1e-6)
+    # contacts lie between the jaws, on the closing line
+    a, b = _xy(plan.jaw1), _xy(plan.jaw2)
+    for t in touches:
+        c = np.array([t.pose.position.x, t.pose.position.y])
+        s = np.dot(c - a, b - a) / np.dot(b - a, b - a)
+        assert 0.0 < s < 1.0
+    image = loop_a.images[-1]
+    model = loop_a.models[-1]
+    assert image.encoding == 'rgb8'
+    assert (image.width, image.height) == (16 * model.info.width, 16 * model.info.height)
 
 
 def test_same_seed_same_grasp(loop_a):

@@ -177,7 +177,14 @@ class PlannerNode(Node):
             n_shape_samples=self.num_shape_samples, uncertainty_penalty=lam, gp_p_adaptive=self.gp_p_adaptive)
 
     def _publish_visuals(self, result, posterior, blur, header) -> None:
-        self.marker_pub.publish(conversions.grasp_markers(result, header, posterior.geometry, self.jaw_width))
+        bank = contacts.SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
+        con = contacts.find_contacts(bank, result.jaw1, result.jaw2, contacts.GripperParams(jaw_width=self.jaw_width),
+                                     check_opening=False)
+        touches = np.stack([np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]])
+        if not bool(np.ravel(con.valid)[0]):
+            touches = None
+        self.marker_pub.publish(conversions.grasp_markers(result, header, posterior.geometry, self.jaw_width,
+                                                          contacts_xy=touches))
         overlay = viz.grasp_overlay(blur, posterior.geometry, [result], scale=self.image_scale,
                                     jaw_width_m=self.jaw_width)
         self.image_pub.publish(conversions.numpy_to_image(conversions.RclpyFactory(), overlay, 'rgb8',
