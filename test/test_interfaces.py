@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from gpis_grasp_ros import bagio
 
 ROOT = Path(__file__).resolve().parents[1]
 MSG_DIR = ROOT / 'gpis_grasp_interfaces' / 'msg'
@@ -16,12 +17,9 @@ MSG_DIR = ROOT / 'gpis_grasp_interfaces' / 'msg'
 
 @pytest.fixture(scope='module')
 def typestore():
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    types = {}
-    for path in sorted(MSG_DIR.glob('*.msg')):
-        types.update(get_types_from_msg(path.read_text(), f'gpis_grasp_interfaces/msg/{path.stem}'))
-    ts.register(types)
-    return ts
+    # Jazzy typestore + the custom types registered from the interface package's .msg text
+    assert sorted(p.stem for p in MSG_DIR.glob('*.msg')) == ['FloatGrid', 'GpisModel']
+    return bagio.get_typestore()
 
 
 def _header(ts, sec, nsec, frame):
