@@ -143,6 +143,39 @@ def test_gpis_node_pairs_only_matching_stamps(scene):
         ros.close()
 
 
+def test_unexpected_error_in_a_callback_is_logged_and_the_node_survives(scene, monkeypatch):
+    occ, noise, geometry = pipeline.publishable_grids(
+        sensing.segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics))
+    real, calls = pipeline.posterior_from_grids, []
+
+    def flaky(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError('simulated numerical failure')
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, 'posterior_from_grids', flaky)
+    ros = RosHarness()
+    try:
+        ros.add(GpisNode(context=ros.context, parameter_overrides=[Parameter('blur_samples', value=50)]))
+        probe = ros.node('probe')
+        models = Recorder()
+        probe.create_subscription(GpisModel, 'gpis/model', models, LATCHED_QOS)
+        occ_pub = probe.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
+        noise_pub = probe.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
+        for stamp in (1000, 2000):
+            hdr = conversions.header(F, stamp, 'cam')
+            occ_pub.publish(conversions.numpy_to_occupancy_grid(F, occ, geometry, hdr))
+            noise_pub.publish(conversions.numpy_to_float_grid(F, noise, geometry, hdr, 'm^2'))
+            if stamp == 1000:
+                assert wait_for(lambda: len(calls) >= 1, 10.0)
+                assert not wait_for(lambda: bool(models.msgs), 0.5)
+        assert wait_for(lambda: bool(models.msgs), 20.0), 'gpis_node died on the first failure'
+        assert models.msgs[-1].header.stamp.nanosec == 2000
+    finally:
+        ros.close()
+
+
 def test_planner_timeout_and_gripper_without_ground_truth(scene):
     ros = RosHarness()
     try:

@@ -64,6 +64,34 @@ def declare(node: Node, name: str, default: Any, description: str, *,
     return value
 
 
+def guarded(node: Node, what: str, callback: Callable[[Any], None]) -> Callable[[Any], None]:
+    """Subscription callback that logs any unexpected exception instead of killing the executor.
+
+    Expected bad input is reported by the callbacks themselves (``ValueError`` → warning); this
+    is the last line of defence so a node never dies on a message.
+    """
+    def wrapper(msg: Any) -> None:
+        try:
+            callback(msg)
+        except Exception as exc:  # noqa: BLE001 - the node must survive anything a message triggers
+            node.get_logger().error(f'{what}: unexpected {type(exc).__name__}: {exc}; message ignored, '
+                                    'node keeps running')
+    return wrapper
+
+
+def guarded_service(node: Node, what: str, callback: Callable[[Any, Any], Any]) -> Callable[[Any, Any], Any]:
+    """Service callback that answers ``success=false`` with the reason on any unexpected exception."""
+    def wrapper(request: Any, response: Any) -> Any:
+        try:
+            return callback(request, response)
+        except Exception as exc:  # noqa: BLE001 - callers always get an answer
+            node.get_logger().error(f'{what}: unexpected {type(exc).__name__}: {exc}')
+            response.success = False
+            response.message = f'internal error in {what}: {type(exc).__name__}: {exc}'
+            return response
+    return wrapper
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:
     """Jazzy main() idiom: init, spin a multi-threaded executor, clean shutdown on Ctrl-C."""
     rclpy.init(args=args)

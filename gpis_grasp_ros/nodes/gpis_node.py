@@ -21,7 +21,7 @@ from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
 
 from .. import conversions, gpis, pipeline
 from ..blur import gpis_blur
-from .common import LATCHED_QOS, declare, run_node
+from .common import LATCHED_QOS, declare, guarded, run_node
 
 
 class GpisNode(Node):
@@ -53,8 +53,10 @@ class GpisNode(Node):
         self._noise: FloatGrid | None = None
         self._last_pair = None
         self._lock = threading.Lock()
-        self.create_subscription(OccupancyGrid, 'object/occupancy', self._on_occupancy, LATCHED_QOS)
-        self.create_subscription(FloatGrid, 'object/noise_map', self._on_noise, LATCHED_QOS)
+        self.create_subscription(OccupancyGrid, 'object/occupancy',
+                                 guarded(self, 'object/occupancy', self._on_occupancy), LATCHED_QOS)
+        self.create_subscription(FloatGrid, 'object/noise_map', guarded(self, 'object/noise_map', self._on_noise),
+                                 LATCHED_QOS)
         self.model_pub = self.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
         self.mean_pub = self.create_publisher(FloatGrid, 'gpis/mean', LATCHED_QOS)
         self.var_pub = self.create_publisher(FloatGrid, 'gpis/variance', LATCHED_QOS)

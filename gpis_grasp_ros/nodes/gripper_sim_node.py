@@ -19,7 +19,7 @@ from gpis_grasp_interfaces.msg import FloatGrid
 from gpis_grasp_interfaces.srv import ExecuteGrasp
 
 from .. import contacts, conversions, planners
-from .common import LATCHED_QOS, declare, run_node
+from .common import LATCHED_QOS, declare, guarded, guarded_service, run_node
 
 MAX_TRIALS = 100000
 
@@ -44,9 +44,11 @@ class GripperSimNode(Node):
         self._sdf = None
         self._geometry = None
         self._com = None
-        self.create_subscription(FloatGrid, 'ground_truth/sdf', self._on_sdf, LATCHED_QOS)
-        self.create_subscription(PointStamped, 'ground_truth/center_of_mass', self._on_com, LATCHED_QOS)
-        self.create_service(ExecuteGrasp, 'execute_grasp', self._on_execute)
+        self.create_subscription(FloatGrid, 'ground_truth/sdf', guarded(self, 'ground_truth/sdf', self._on_sdf),
+                                 LATCHED_QOS)
+        self.create_subscription(PointStamped, 'ground_truth/center_of_mass',
+                                 guarded(self, 'ground_truth/center_of_mass', self._on_com), LATCHED_QOS)
+        self.create_service(ExecuteGrasp, 'execute_grasp', guarded_service(self, 'execute_grasp', self._on_execute))
 
     def _on_sdf(self, msg: FloatGrid) -> None:
         try:

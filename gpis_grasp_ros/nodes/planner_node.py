@@ -23,7 +23,7 @@ from gpis_grasp_interfaces.srv import GraspPlan
 
 from .. import contacts, conversions, planners, viz
 from ..blur import gpis_blur
-from .common import LATCHED_QOS, declare, run_node
+from .common import LATCHED_QOS, declare, guarded, guarded_service, run_node
 
 MAX_INITIAL_GRASPS = 1000
 #: Methods whose request field num_initial_grasps means K heuristic grasp samples.
@@ -73,11 +73,13 @@ class PlannerNode(Node):
         self._busy = threading.Lock()
 
         self._model_topic = 'gpis/model'
-        self.create_subscription(GpisModel, self._model_topic, self._on_model, LATCHED_QOS,
+        self.create_subscription(GpisModel, self._model_topic, guarded(self, self._model_topic, self._on_model),
+                                 LATCHED_QOS,
                                  callback_group=MutuallyExclusiveCallbackGroup())
         self.marker_pub = self.create_publisher(MarkerArray, 'grasp/markers', LATCHED_QOS)
         self.image_pub = self.create_publisher(Image, 'grasp/image', LATCHED_QOS)
-        self.create_service(GraspPlan, 'plan_grasp', self._on_plan, callback_group=ReentrantCallbackGroup())
+        self.create_service(GraspPlan, 'plan_grasp', guarded_service(self, 'plan_grasp', self._on_plan),
+                            callback_group=ReentrantCallbackGroup())
         self.get_logger().info(f"waiting for a GPIS on '{self.resolve_topic_name(self._model_topic)}'; "
                                f"serving '{self.resolve_service_name('plan_grasp')}'")
 
@@ -132,11 +134,11 @@ class PlannerNode(Node):
             response.message = ("no GPIS received yet: waiting for a gpis_grasp_interfaces/GpisModel on "
                                 f"'{self.resolve_topic_name(self._model_topic)}'")
             return response
+        seed = int(request.seed) if request.seed else int(np.random.SeedSequence().entropy % (2 ** 32))
+        params = self._planner_params(posterior, n, lam, sampling=method in SAMPLING_METHODS)
         if not self._busy.acquire(blocking=False):
             response.message = 'planner busy with another request (or a timed-out plan still running); retry later'
             return response
-        seed = int(request.seed) if request.seed else int(np.random.SeedSequence().entropy % (2 ** 32))
-        params = self._planner_params(posterior, n, lam, sampling=method in SAMPLING_METHODS)
         outcome: dict = {}
 
         def work() -> None:

@@ -21,7 +21,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from gpis_grasp_interfaces.msg import FloatGrid
 
 from .. import conversions, pipeline, sensing
-from .common import LATCHED_QOS, declare, run_node, sensor_qos
+from .common import LATCHED_QOS, declare, guarded, run_node, sensor_qos
 
 MAX_PENDING_IMAGES = 30
 
@@ -69,11 +69,15 @@ class SegmentationNode(Node):
 
         qos = sensor_qos(reliability)
         if self.input_mode == 'cloud':
-            self.create_subscription(PointCloud2, 'camera/depth/points', self._on_cloud, qos)
+            self.create_subscription(PointCloud2, 'camera/depth/points',
+                                     guarded(self, 'camera/depth/points', self._on_cloud), qos)
         else:
-            self.create_subscription(Image, 'camera/rgb/image_raw', self._on_rgb, qos)
-            self.create_subscription(Image, 'camera/depth/image_raw', self._on_depth, qos)
-            self.create_subscription(CameraInfo, 'camera/rgb/camera_info', self._on_info, qos)
+            self.create_subscription(Image, 'camera/rgb/image_raw',
+                                     guarded(self, 'camera/rgb/image_raw', self._on_rgb), qos)
+            self.create_subscription(Image, 'camera/depth/image_raw',
+                                     guarded(self, 'camera/depth/image_raw', self._on_depth), qos)
+            self.create_subscription(CameraInfo, 'camera/rgb/camera_info',
+                                     guarded(self, 'camera/rgb/camera_info', self._on_info), qos)
         self.occupancy_pub = self.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
         self.noise_pub = self.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
 
