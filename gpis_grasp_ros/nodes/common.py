@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
@@ -93,7 +95,11 @@ def guarded_service(node: Node, what: str, callback: Callable[[Any, Any], Any]) 
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:
-    """Jazzy main() idiom: init, spin a multi-threaded executor, clean shutdown on Ctrl-C."""
+    """Jazzy main() idiom: init, spin a multi-threaded executor, clean shutdown on Ctrl-C.
+
+    A bad parameter value at start-up ends the process with a one-line error (exit code 2)
+    instead of a stack trace.
+    """
     rclpy.init(args=args)
     node = None
     try:
@@ -103,6 +109,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except (ValueError, ParameterException) as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
     finally:
         if node is not None:
             node.destroy_node()
