@@ -115,37 +115,51 @@ def test_segmentation_image_mode_rejects_mismatched_pairs(scene):
         ros.close()
 
 
-def test_gpis_node_pairs_only_matching_stamps(scene):
-    occ, noise, geometry = pipeline.publishable_grids(
-        sensing.segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics))
-    ros = RosHarness()
+@pytest.fixture(scope='module')
+def grids(scene):
+    """What segmentation_node publishes for object H: (occupancy int8, noise float32, geometry)."""
+    return pipeline.publishable_grids(sensing.segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics))
+
+
+class GpisGraph:
+    """gpis_node plus a probe that publishes grid pairs and records the models."""
+
+    def __init__(self) -> None:
+        self.ros = RosHarness()
+        self.ros.add(GpisNode(context=self.ros.context, parameter_overrides=[Parameter('blur_samples', value=50)]))
+        probe = self.ros.node('probe')
+        self.models = Recorder()
+        probe.create_subscription(GpisModel, 'gpis/model', self.models, LATCHED_QOS)
+        self.occ_pub = probe.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
+        self.noise_pub = probe.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
+
+    def occupancy(self, occ, geometry, stamp: int) -> None:
+        self.occ_pub.publish(conversions.numpy_to_occupancy_grid(F, occ, geometry, conversions.header(F, stamp, 'cam')))
+
+    def noise(self, noise, geometry, stamp: int) -> None:
+        self.noise_pub.publish(conversions.numpy_to_float_grid(F, noise, geometry, conversions.header(F, stamp, 'cam'),
+                                                               'm^2'))
+
+
+def test_gpis_node_pairs_only_matching_stamps(grids):
+    occ, noise, geometry = grids
+    g = GpisGraph()
     try:
-        ros.add(GpisNode(context=ros.context, parameter_overrides=[Parameter('blur_samples', value=50)]))
-        probe = ros.node('probe')
-        models = Recorder()
-        probe.create_subscription(GpisModel, 'gpis/model', models, LATCHED_QOS)
-        occ_pub = probe.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
-        noise_pub = probe.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
-        occ_pub.publish(conversions.numpy_to_occupancy_grid(F, occ, geometry, conversions.header(F, 1000, 'cam')))
-        noise_pub.publish(conversions.numpy_to_float_grid(F, noise, geometry, conversions.header(F, 2000, 'cam'),
-                                                          'm^2'))
-        assert not wait_for(lambda: bool(models.msgs), 1.5), 'stale/mismatched pair was combined'
+        g.occupancy(occ, geometry, 1000)
+        g.noise(noise, geometry, 2000)
+        assert not wait_for(lambda: bool(g.models.msgs), 1.5), 'stale/mismatched pair was combined'
         # a noise map of another grid size with the matching stamp is rejected too
-        small = geometry.with_shape(10, 10)
-        noise_pub.publish(conversions.numpy_to_float_grid(F, np.zeros((10, 10), np.float32), small,
-                                                          conversions.header(F, 1000, 'cam'), 'm^2'))
-        assert not wait_for(lambda: bool(models.msgs), 1.0)
-        noise_pub.publish(conversions.numpy_to_float_grid(F, noise, geometry, conversions.header(F, 1000, 'cam'),
-                                                          'm^2'))
-        assert wait_for(lambda: bool(models.msgs), 20.0)
-        assert models.msgs[-1].header.stamp.sec == 0 and models.msgs[-1].header.stamp.nanosec == 1000
+        g.noise(np.zeros((10, 10), np.float32), geometry.with_shape(10, 10), 1000)
+        assert not wait_for(lambda: bool(g.models.msgs), 1.0)
+        g.noise(noise, geometry, 1000)
+        assert wait_for(lambda: bool(g.models.msgs), 20.0)
+        assert g.models.msgs[-1].header.stamp.sec == 0 and g.models.msgs[-1].header.stamp.nanosec == 1000
     finally:
-        ros.close()
+        g.ros.close()
 
 
-def test_unexpected_error_in_a_callback_is_logged_and_the_node_survives(scene, monkeypatch):
-    occ, noise, geometry = pipeline.publishable_grids(
-        sensing.segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics))
+def test_unexpected_error_in_a_callback_is_logged_and_the_node_survives(grids, monkeypatch):
+    occ, noise, geometry = grids
     real, calls = pipeline.posterior_from_grids, []
 
     def flaky(*args, **kwargs):
@@ -155,25 +169,18 @@ def test_unexpected_error_in_a_callback_is_logged_and_the_node_survives(scene, m
         return real(*args, **kwargs)
 
     monkeypatch.setattr(pipeline, 'posterior_from_grids', flaky)
-    ros = RosHarness()
+    g = GpisGraph()
     try:
-        ros.add(GpisNode(context=ros.context, parameter_overrides=[Parameter('blur_samples', value=50)]))
-        probe = ros.node('probe')
-        models = Recorder()
-        probe.create_subscription(GpisModel, 'gpis/model', models, LATCHED_QOS)
-        occ_pub = probe.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
-        noise_pub = probe.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
         for stamp in (1000, 2000):
-            hdr = conversions.header(F, stamp, 'cam')
-            occ_pub.publish(conversions.numpy_to_occupancy_grid(F, occ, geometry, hdr))
-            noise_pub.publish(conversions.numpy_to_float_grid(F, noise, geometry, hdr, 'm^2'))
+            g.occupancy(occ, geometry, stamp)
+            g.noise(noise, geometry, stamp)
             if stamp == 1000:
                 assert wait_for(lambda: len(calls) >= 1, 10.0)
-                assert not wait_for(lambda: bool(models.msgs), 0.5)
-        assert wait_for(lambda: bool(models.msgs), 20.0), 'gpis_node died on the first failure'
-        assert models.msgs[-1].header.stamp.nanosec == 2000
+                assert not wait_for(lambda: bool(g.models.msgs), 0.5)
+        assert wait_for(lambda: bool(g.models.msgs), 20.0), 'gpis_node died on the first failure'
+        assert g.models.msgs[-1].header.stamp.nanosec == 2000
     finally:
-        ros.close()
+        g.ros.close()
 
 
 def test_planner_timeout_and_gripper_without_ground_truth(scene):
