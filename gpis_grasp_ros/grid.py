@@ -69,12 +69,6 @@ class GridGeometry:
         origin = np.array([self.origin_x, self.origin_y])
         return origin + (uv + 0.5) * self.resolution
 
-    def contains(self, xy: np.ndarray) -> np.ndarray:
-        """Whether metric points lie inside the grid's outer boundary."""
-        xy = np.asarray(xy, dtype=np.float64)
-        return ((xy[..., 0] >= self.origin_x) & (xy[..., 0] <= self.origin_x + self.size_m[0])
-                & (xy[..., 1] >= self.origin_y) & (xy[..., 1] <= self.origin_y + self.size_m[1]))
-
     def with_shape(self, width: int, height: int) -> GridGeometry:
         """Same metric extent resampled to ``width x height`` cells (square cells, x extent kept)."""
         res = self.size_m[0] / width
