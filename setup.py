@@ -23,12 +23,12 @@ setup(
     license='BSD-3-Clause',
     entry_points={
         'console_scripts': [
-            'gpis-grasp = gpis_grasp_ros.cli:main',
-            'segmentation_node = gpis_grasp_ros.nodes.segmentation_node:main',
-            'gpis_node = gpis_grasp_ros.nodes.gpis_node:main',
-            'planner_node = gpis_grasp_ros.nodes.planner_node:main',
-            'gripper_sim_node = gpis_grasp_ros.nodes.gripper_sim_node:main',
-            'bag_player = gpis_grasp_ros.player:main',
+            'gpis-grasp = gpis_grasp_ros.tools.cli:main',
+            'segmentation_node = gpis_grasp_ros.ros.nodes.segmentation_node:main',
+            'gpis_node = gpis_grasp_ros.ros.nodes.gpis_node:main',
+            'planner_node = gpis_grasp_ros.ros.nodes.planner_node:main',
+            'gripper_sim_node = gpis_grasp_ros.ros.nodes.gripper_sim_node:main',
+            'bag_player = gpis_grasp_ros.ros.player:main',
         ],
     },
 )

@@ -2,7 +2,7 @@
 
     source scripts/env.sh && python scripts/gen_default_config.py > config/default.yaml
 
-test/test_nodes_config.py checks that the committed file matches the nodes.
+test/ros/test_nodes_config.py checks that the committed file matches the nodes.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import rclpy
 from rclpy.context import Context
 
 NODES = {
-    'segmentation_node': 'gpis_grasp_ros.nodes.segmentation_node:SegmentationNode',
-    'gpis_node': 'gpis_grasp_ros.nodes.gpis_node:GpisNode',
-    'planner_node': 'gpis_grasp_ros.nodes.planner_node:PlannerNode',
-    'gripper_sim_node': 'gpis_grasp_ros.nodes.gripper_sim_node:GripperSimNode',
+    'segmentation_node': 'gpis_grasp_ros.ros.nodes.segmentation_node:SegmentationNode',
+    'gpis_node': 'gpis_grasp_ros.ros.nodes.gpis_node:GpisNode',
+    'planner_node': 'gpis_grasp_ros.ros.nodes.planner_node:PlannerNode',
+    'gripper_sim_node': 'gpis_grasp_ros.ros.nodes.gripper_sim_node:GripperSimNode',
 }
 
 

@@ -1,0 +1,105 @@
+"""A recorded scene for offline use: camera frames and ground truth read from a bag.
+
+:func:`load_bag` reads what segmentation_node subscribes to (clouds, or RGB + depth images with
+camera info) and the simulator's ground truth; :func:`posterior_from_scene` runs the perception
+pipeline on it exactly as the nodes do (:mod:`gpis_grasp_ros.core.pipeline`).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gpis_grasp_ros.core.gpis import GpisParams, GpisPosterior
+from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
+from gpis_grasp_ros.core.sensing import (
+    CameraIntrinsics,
+    SensingParams,
+    SensingResult,
+    frames_from_clouds,
+    segment_frames,
+)
+from gpis_grasp_ros.data import messages
+from gpis_grasp_ros.data.bagio import read_messages
+
+CLOUD_TOPIC = '/camera/depth/points'
+RGB_TOPIC = '/camera/rgb/image_raw'
+DEPTH_TOPIC = '/camera/depth/image_raw'
+INFO_TOPIC = '/camera/rgb/camera_info'
+TRUE_SDF_TOPIC = '/ground_truth/sdf'
+TRUE_COM_TOPIC = '/ground_truth/center_of_mass'
+
+
+@dataclass
+class BagScene:
+    """What a bag holds for offline use: camera frames and (evaluation only) the ground truth."""
+
+    rgb_frames: np.ndarray  # (N, H, W, 3) uint8
+    depth_frames: np.ndarray  # (N, H, W) m, NaN = no return
+    intrinsics: CameraIntrinsics
+    frame_id: str
+    stamp_ns: int  # stamp of the last frame used
+    true_sdf: np.ndarray | None = None  # m, positive outside
+    true_geometry: GridGeometry | None = None
+    true_center_of_mass: np.ndarray | None = None  # (x, y) m
+
+
+def load_bag(path: str | os.PathLike[str], frames: int = 10, source: str = 'cloud') -> BagScene:
+    """Read the first ``frames`` camera frames and the ground truth of a bag.
+
+    ``source='cloud'`` uses ``camera/depth/points`` (as segmentation_node's default input mode),
+    ``'images'`` the RGB + depth images and camera info.
+    """
+    path = Path(path)
+    clouds: list[tuple[np.ndarray, np.ndarray]] = []
+    rgbs: dict[int, np.ndarray] = {}
+    depths: dict[int, np.ndarray] = {}
+    info = None
+    frame_id, stamp = '', 0
+    scene_gt: dict = {}
+    topics = [CLOUD_TOPIC, RGB_TOPIC, DEPTH_TOPIC, INFO_TOPIC, TRUE_SDF_TOPIC, TRUE_COM_TOPIC]
+    for topic, _type, _t, msg in read_messages(path, topics):
+        if topic == TRUE_SDF_TOPIC:
+            scene_gt['sdf'], scene_gt['geometry'] = messages.float_grid_to_numpy(msg)
+        elif topic == TRUE_COM_TOPIC:
+            scene_gt['com'] = messages.point_stamped_to_numpy(msg)[:2]
+        elif source == 'cloud' and topic == CLOUD_TOPIC and len(clouds) < frames:
+            clouds.append(messages.pointcloud2_to_xyz_rgb(msg))
+            frame_id, stamp = msg.header.frame_id, messages.stamp_to_ns(msg.header.stamp)
+        elif source == 'images' and topic == INFO_TOPIC and info is None:
+            info = CameraIntrinsics(*messages.camera_info_to_intrinsics(msg))
+        elif source == 'images' and topic == RGB_TOPIC and len(rgbs) < frames:
+            rgbs[messages.stamp_to_ns(msg.header.stamp)] = messages.image_to_numpy(msg)
+        elif source == 'images' and topic == DEPTH_TOPIC and len(depths) < frames:
+            key = messages.stamp_to_ns(msg.header.stamp)
+            depths[key] = messages.image_to_numpy(msg).astype(np.float64)
+            frame_id, stamp = msg.header.frame_id, key
+    if source == 'cloud':
+        if not clouds:
+            raise ValueError(f'{path}: no {CLOUD_TOPIC} messages')
+        rgb, depth, intrinsics = frames_from_clouds(np.stack([c[0] for c in clouds]),
+                                                    np.stack([c[1] for c in clouds]))
+    elif source == 'images':
+        keys = sorted(set(rgbs) & set(depths))
+        if not keys or info is None:
+            raise ValueError(f'{path}: no matching RGB/depth image pairs with camera info')
+        rgb = np.stack([rgbs[k] for k in keys])
+        depth = np.stack([depths[k] for k in keys])
+        intrinsics = info
+    else:
+        raise ValueError(f"source must be 'cloud' or 'images', got '{source}'")
+    return BagScene(rgb, depth, intrinsics, frame_id, stamp, scene_gt.get('sdf'), scene_gt.get('geometry'),
+                    scene_gt.get('com'))
+
+
+def posterior_from_scene(scene: BagScene, sensing_params: SensingParams = SensingParams(),
+                         gpis_params: GpisParams = GpisParams()) -> tuple[GpisPosterior, SensingResult]:
+    """Segmentation + GPIS of a loaded bag, through the same grids the nodes exchange."""
+    result = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, sensing_params,
+                            frame_id=scene.frame_id)
+    occ, noise, geometry = publishable_grids(result)
+    return posterior_from_grids(occ, noise, geometry, gpis_params), result

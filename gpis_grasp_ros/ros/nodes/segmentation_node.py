@@ -1,0 +1,172 @@
+"""segmentation_node: camera frames of an object on a table → occupancy grid + noise map.
+
+Subscribes either ``camera/depth/points`` (organized XYZRGB PointCloud2) or
+``camera/rgb/image_raw`` + ``camera/depth/image_raw`` + ``camera/rgb/camera_info`` (parameter
+``input_mode``), averages ``frames_to_average`` frames (paper section III-B) and publishes latched
+``object/occupancy`` (nav_msgs/OccupancyGrid: 0..100, -1 = no depth return, counted as object but
+not used for GPIS training) and ``object/noise_map`` (gpis_grasp_interfaces/FloatGrid, m^2 per
+cell: variance of the cell's SDF value; NaN = not used for training), stamped with the newest
+frame's stamp and the camera frame.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from nav_msgs.msg import OccupancyGrid
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+from gpis_grasp_interfaces.msg import FloatGrid
+from gpis_grasp_ros.core import pipeline, sensing
+from gpis_grasp_ros.data import messages
+from gpis_grasp_ros.ros import conversions
+from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, declare, guarded, run_node, sensor_qos
+
+MAX_PENDING_IMAGES = 30
+
+
+def _same_camera(a: sensing.CameraIntrinsics, b: sensing.CameraIntrinsics, tol_px: float = 0.5) -> bool:
+    """Intrinsics equal up to ``tol_px`` (those recovered from each cloud differ by rounding)."""
+    return (a.width, a.height) == (b.width, b.height) and bool(np.allclose(
+        [a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy], atol=tol_px))
+
+
+class SegmentationNode(Node):
+    """Accumulates frames and runs :func:`gpis_grasp_ros.core.sensing.segment_frames`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('segmentation_node', **kwargs)
+        self.input_mode = declare(self, 'input_mode', 'cloud',
+                                  "'cloud': camera/depth/points; 'images': rgb + depth images + camera_info",
+                                  choices=['cloud', 'images'], read_only=True)
+        self.frames_to_average = declare(self, 'frames_to_average', 10, 'frames averaged per estimate (paper: 10)',
+                                         low=1, high=1000)
+        reliability = declare(self, 'input_reliability', 'best_effort',
+                              "QoS reliability of the camera subscriptions ('best_effort' = sensor data)",
+                              choices=['best_effort', 'reliable'], read_only=True)
+        defaults = sensing.SensingParams()
+        self.params = sensing.SensingParams(
+            grid_size=declare(self, 'grid_size', defaults.grid_size, 'M: cells per side of the M x M grid (paper: 25)',
+                              low=4, high=400),
+            margin=declare(self, 'grid_margin', float(defaults.margin),
+                           'margin around the object bounding box, as a fraction of its size', low=0.0, high=5.0),
+            height_threshold=declare(self, 'height_threshold', float(defaults.height_threshold),
+                                     'depth mask: minimum height above the table (m)', low=0.0, high=0.5),
+            color_threshold=declare(self, 'color_threshold', float(defaults.color_threshold),
+                                    'RGB mask: minimum colour distance from the table colour (0-255 units); '
+                                    '0 = adaptive to the table texture seen at the image border',
+                                    low=0.0, high=442.0),
+        )
+        self._frames: list[tuple[np.ndarray, np.ndarray]] = []
+        self._stamp = None
+        self._frame_id = ''
+        self._intrinsics = None
+        self._intrinsics_used = None
+        self._pending_rgb: dict[int, Image] = {}
+        self._pending_depth: dict[int, Image] = {}
+        self._lock = threading.Lock()
+
+        qos = sensor_qos(reliability)
+        if self.input_mode == 'cloud':
+            self.create_subscription(PointCloud2, 'camera/depth/points',
+                                     guarded(self, 'camera/depth/points', self._on_cloud), qos)
+        else:
+            self.create_subscription(Image, 'camera/rgb/image_raw',
+                                     guarded(self, 'camera/rgb/image_raw', self._on_rgb), qos)
+            self.create_subscription(Image, 'camera/depth/image_raw',
+                                     guarded(self, 'camera/depth/image_raw', self._on_depth), qos)
+            self.create_subscription(CameraInfo, 'camera/rgb/camera_info',
+                                     guarded(self, 'camera/rgb/camera_info', self._on_info), qos)
+        self.occupancy_pub = self.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
+        self.noise_pub = self.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
+
+    # ------------------------------------------------------------------ inputs
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        try:
+            xyz, rgb = messages.pointcloud2_to_xyz_rgb(msg)
+            rgb_f, depth_f, intrinsics = sensing.frames_from_clouds(xyz[None], rgb[None])
+        except ValueError as exc:
+            self.get_logger().warning(f'ignoring PointCloud2 on camera/depth/points: {exc}')
+            return
+        self._add_frame(rgb_f[0], depth_f[0], intrinsics, msg.header)
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        try:
+            self._intrinsics = sensing.CameraIntrinsics(*messages.camera_info_to_intrinsics(msg))
+        except (ValueError, TypeError) as exc:
+            self.get_logger().warning(f'ignoring CameraInfo: {exc}')
+
+    def _on_rgb(self, msg: Image) -> None:
+        self._pair(msg, self._pending_rgb, self._pending_depth, rgb_first=True)
+
+    def _on_depth(self, msg: Image) -> None:
+        self._pair(msg, self._pending_depth, self._pending_rgb, rgb_first=False)
+
+    def _pair(self, msg: Image, mine: dict, other: dict, rgb_first: bool) -> None:
+        """Match RGB and depth images by exact stamp (registered depth: same stamp per frame)."""
+        key = messages.stamp_to_ns(msg.header.stamp)
+        with self._lock:
+            partner = other.pop(key, None)
+            if partner is None:
+                mine[key] = msg
+                for stale in sorted(mine)[:-MAX_PENDING_IMAGES]:
+                    del mine[stale]
+                return
+        rgb_msg, depth_msg = (msg, partner) if rgb_first else (partner, msg)
+        if self._intrinsics is None:
+            self.get_logger().warning('no CameraInfo received yet on camera/rgb/camera_info; frame skipped',
+                                      throttle_duration_sec=5.0)
+            return
+        try:
+            rgb = messages.image_to_numpy(rgb_msg)
+            depth = messages.image_to_numpy(depth_msg)
+            if rgb.ndim != 3 or depth.ndim != 2:
+                raise ValueError(f'expected a colour image and a single-channel depth image, got shapes '
+                                 f'{rgb.shape} and {depth.shape}')
+            if rgb.shape[:2] != depth.shape:
+                raise ValueError(f'RGB {rgb.shape[:2]} and depth {depth.shape} sizes differ')
+            if rgb_msg.encoding == 'bgr8':
+                rgb = rgb[..., ::-1]
+        except ValueError as exc:
+            self.get_logger().warning(f'ignoring image pair: {exc}')
+            return
+        self._add_frame(rgb, depth.astype(np.float64), self._intrinsics, depth_msg.header)
+
+    # ------------------------------------------------------------------ processing
+    def _add_frame(self, rgb: np.ndarray, depth: np.ndarray, intrinsics, header) -> None:
+        with self._lock:
+            if self._frames and (self._frames[0][0].shape != rgb.shape
+                                 or not _same_camera(self._intrinsics_used, intrinsics)):
+                self.get_logger().warning('camera geometry changed; restarting the frame average')
+                self._frames = []
+            self._frames.append((rgb, depth))
+            self._intrinsics_used = intrinsics
+            self._stamp, self._frame_id = header.stamp, header.frame_id
+            if len(self._frames) < self.frames_to_average:
+                return
+            frames, self._frames = self._frames, []
+        rgb_frames = np.stack([f[0] for f in frames])
+        depth_frames = np.stack([f[1] for f in frames])
+        try:
+            result = sensing.segment_frames(rgb_frames, depth_frames, intrinsics, self.params,
+                                            frame_id=self._frame_id)
+        except ValueError as exc:
+            self.get_logger().warning(f'segmentation failed, nothing published: {exc}')
+            return
+        factory = conversions.RclpyFactory()
+        header_msg = messages.header(factory, messages.stamp_to_ns(self._stamp), self._frame_id)
+        occ, noise, geometry = pipeline.publishable_grids(result)
+        self.occupancy_pub.publish(messages.numpy_to_occupancy_grid(factory, occ, geometry, header_msg))
+        self.noise_pub.publish(messages.numpy_to_float_grid(factory, noise, geometry, header_msg, 'm^2'))
+        self.get_logger().info(f'published {result.geometry.height}x{result.geometry.width} occupancy and noise map '
+                               f'from {len(frames)} frames ({int(result.missing.sum())} missing cells)')
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(SegmentationNode, args)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,339 @@
+"""Bag replay with rclpy publishers: a launch-free stand-in for ``ros2 bag play``.
+
+``gpis-grasp play BAG [--rate R] [--loop] [--topics T ...] [--remap FROM:=TO ...] [--reliable]``
+(also installed as the ``bag_player`` console script).
+
+* Messages are published in bag-time order as the recorded CDR bytes (no re-serialization),
+  each topic with the QoS it was recorded with (``offered_qos_profiles``; several offered
+  profiles are merged like rosbag2 does: RELIABLE / TRANSIENT_LOCAL only if all agree), so the
+  latched ground truth reaches late TRANSIENT_LOCAL subscribers and camera streams are best effort.
+* ``rate`` scales real time (1.0 = recorded timing); ``rate=0`` publishes as fast as the
+  subscribers allow: before the first message it waits (up to ``wait_for_subscribers`` s) until
+  every publisher is matched, and after each message on a RELIABLE publisher it waits until all
+  matched subscribers acknowledged it. Best-effort topics cannot be paced that way; use
+  ``reliable=True`` (``--reliable``) to publish every topic RELIABLE (still compatible with
+  best-effort subscribers) when no message may be lost.
+* Header stamps are left as recorded (2015 for the shipped bags).
+
+:class:`BagPlayer` is importable for tests and demos: give it a node (it adds publishers) or a
+context (it creates its own ``bag_player`` node), call :meth:`BagPlayer.play_once` or
+:meth:`BagPlayer.play`, and wait on :attr:`BagPlayer.done`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability
+
+from gpis_grasp_ros.data import bagio
+from gpis_grasp_ros.ros.conversions import rclpy_message_class
+
+_INFINITE_SEC = 2 ** 31 - 1  # rosbag2 stores "infinite" as 9223372036 s; anything this large is "default"
+
+
+def _duration(t: Any) -> Duration | None:
+    sec, nsec = int(t.sec), int(t.nsec)
+    if (sec == 0 and nsec == 0) or sec >= _INFINITE_SEC:
+        return None
+    return Duration(seconds=sec, nanoseconds=nsec)
+
+
+def qos_from_recorded(profiles: Iterable[Qos], depth_default: int = 10) -> QoSProfile:
+    """rclpy :class:`QoSProfile` for publishing a topic recorded with ``profiles`` (rosbags Qos).
+
+    Several profiles (several recorded publishers) are merged like rosbag2 play does: RELIABLE and
+    TRANSIENT_LOCAL only when every profile has them; the largest depth. No profile → a
+    RELIABLE / VOLATILE KEEP_LAST ``depth_default`` profile."""
+    profiles = list(profiles)
+    if not profiles:
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth_default,
+                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+    reliable = all(p.reliability == QosReliability.RELIABLE for p in profiles)
+    latched = all(p.durability == QosDurability.TRANSIENT_LOCAL for p in profiles)
+    keep_all = any(p.history == QosHistory.KEEP_ALL for p in profiles)
+    kwargs: dict[str, Any] = {
+        'history': HistoryPolicy.KEEP_ALL if keep_all else HistoryPolicy.KEEP_LAST,
+        'depth': max(max(int(p.depth) for p in profiles), 1),
+        'reliability': ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        'durability': DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    }
+    first = profiles[0]
+    if len(profiles) == 1:
+        for name in ('deadline', 'lifespan', 'liveliness_lease_duration'):
+            d = _duration(getattr(first, name))
+            if d is not None:
+                kwargs[name] = d
+        if first.liveliness == QosLiveliness.MANUAL_BY_TOPIC:
+            kwargs['liveliness'] = LivelinessPolicy.MANUAL_BY_TOPIC
+    return QoSProfile(**kwargs)
+
+
+def _absolute(topic: str) -> str:
+    return topic if topic.startswith('/') else '/' + topic
+
+
+class BagPlayer:
+    """Publish the messages of one bag with rclpy (see the module docstring).
+
+    Args:
+        node_or_context: an rclpy ``Node`` to create the publishers on, or a ``Context`` (or None
+            for the default context) in which a ``bag_player`` node is created and owned.
+        bag_path: ``.mcap`` file or rosbag2 directory.
+        rate: playback speed factor; 0 = as fast as the subscribers allow.
+        loop: :meth:`play` repeats until :meth:`stop`.
+        topics: topics to play (default all; with or without the leading '/').
+        remap: recorded topic → published topic.
+        reliable: publish every topic RELIABLE (otherwise the recorded reliability).
+        wait_for_subscribers: seconds to wait before the first message until every publisher has a
+            matched subscription (default: 2 s when ``rate == 0``, else 0).
+        ack_timeout: seconds to wait for acknowledgements of each message when ``rate == 0``.
+    """
+
+    def __init__(self, node_or_context: Node | Context | None, bag_path: str | Path, rate: float = 1.0,
+                 loop: bool = False, topics: Iterable[str] | None = None, remap: Mapping[str, str] | None = None,
+                 *, reliable: bool = False, wait_for_subscribers: float | None = None,
+                 ack_timeout: float = 5.0) -> None:
+        if not (rate >= 0):
+            raise ValueError(f'rate must be >= 0 (0 = as fast as possible), got {rate}')
+        self.bag_path = Path(bag_path)
+        if not self.bag_path.exists():
+            raise FileNotFoundError(f'bag {self.bag_path} does not exist')
+        self.rate = float(rate)
+        self.loop = bool(loop)
+        self.ack_timeout = float(ack_timeout)
+        self.wait_for_subscribers = (2.0 if self.rate == 0 else 0.0) if wait_for_subscribers is None \
+            else float(wait_for_subscribers)
+        info = bagio.bag_topics(self.bag_path)
+        if topics is None:
+            selected = sorted(info)
+        else:
+            selected = sorted({_absolute(t) for t in topics})
+            missing = [t for t in selected if t not in info]
+            if missing:
+                raise ValueError(f"topic(s) {', '.join(missing)} not in {self.bag_path}; "
+                                 f"it has {', '.join(sorted(info))}")
+        remap = {_absolute(k): _absolute(v) for k, v in (remap or {}).items()}
+        unknown = [k for k in remap if k not in info]
+        if unknown:
+            raise ValueError(f"cannot remap {', '.join(unknown)}: not in {self.bag_path}")
+
+        self._owns_node = not isinstance(node_or_context, Node)
+        if isinstance(node_or_context, Node):
+            self.node = node_or_context
+        else:
+            self.node = rclpy.create_node('bag_player', context=node_or_context)
+        self.topics = selected
+        self.remap = remap
+        self.publishers: dict[str, Any] = {}
+        self.qos: dict[str, QoSProfile] = {}
+        try:
+            for topic in selected:
+                qos = qos_from_recorded(info[topic]['qos'])
+                if reliable:
+                    qos.reliability = ReliabilityPolicy.RELIABLE
+                msg_class = rclpy_message_class(info[topic]['type'])
+                self.qos[topic] = qos
+                self.publishers[topic] = self.node.create_publisher(msg_class, remap.get(topic, topic), qos)
+        except BaseException:
+            for pub in self.publishers.values():
+                self.node.destroy_publisher(pub)
+            if self._owns_node:
+                self.node.destroy_node()
+            raise
+        self.counts: dict[str, int] = dict.fromkeys(selected, 0)
+        self.passes = 0
+        self.done = threading.Event()
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ control
+    def play_once(self, blocking: bool = True) -> None:
+        """Play the bag once (ignores ``loop``); in a background thread when ``blocking`` is False."""
+        self._start(once=True, blocking=blocking)
+
+    def play(self, blocking: bool = True) -> None:
+        """Play the bag, repeating while ``loop`` is set and :meth:`stop` was not called."""
+        self._start(once=not self.loop, blocking=blocking)
+
+    def stop(self, timeout: float | None = 5.0) -> None:
+        """Stop playback (between messages) and wait up to ``timeout`` s for the thread."""
+        self._stop.set()
+        self.join(timeout)
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for background playback; returns True when it has finished."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+        return self.done.is_set()
+
+    def destroy(self) -> None:
+        """Stop, destroy the publishers, and the node if the player created it."""
+        self.stop()
+        for pub in self.publishers.values():
+            self.node.destroy_publisher(pub)
+        self.publishers.clear()
+        if self._owns_node:
+            self.node.destroy_node()
+
+    # ------------------------------------------------------------------ playback
+    def _start(self, once: bool, blocking: bool) -> None:
+        if self._thread is not None and self._thread.is_alive():
+            raise RuntimeError('playback is already running')
+        self.done.clear()
+        self._stop.clear()
+        self.error = None
+        if blocking:
+            self._run(once)
+            if self.error is not None:
+                raise self.error
+        else:
+            self._thread = threading.Thread(target=self._run, args=(once,), name='bag_player', daemon=True)
+            self._thread.start()
+
+    def _run(self, once: bool) -> None:
+        try:
+            self._wait_for_matching()
+            while not self._stop.is_set():
+                self._play_pass()
+                self.passes += 1
+                if once:
+                    break
+        except BaseException as err:  # noqa: BLE001 - reported through self.error / done
+            if self.node.context.ok() and not self._stop.is_set():
+                self.error = err
+                self.node.get_logger().error(f'playback of {self.bag_path} failed: {err}')
+        finally:
+            self.done.set()
+
+    def _wait_for_matching(self) -> None:
+        deadline = time.monotonic() + self.wait_for_subscribers
+        while True:
+            lonely = [t for t, p in self.publishers.items() if p.get_subscription_count() == 0]
+            if not lonely or self._stop.is_set():
+                return
+            if time.monotonic() >= deadline:
+                if self.wait_for_subscribers > 0:
+                    self.node.get_logger().warning(f"no subscribers on {', '.join(lonely)}; playing anyway")
+                return
+            self._stop.wait(0.01)
+
+    def _play_pass(self) -> None:
+        start_wall: float | None = None
+        start_bag = 0
+        ack = Duration(seconds=self.ack_timeout)
+        for record in bagio.iter_bag(self.bag_path, self.topics):
+            if self._stop.is_set():
+                return
+            if start_wall is None:
+                start_wall, start_bag = time.monotonic(), record.t_ns
+            if self.rate > 0:
+                due = start_wall + (record.t_ns - start_bag) * 1e-9 / self.rate
+                delay = due - time.monotonic()
+                if delay > 0 and self._stop.wait(delay):
+                    return
+            pub = self.publishers[record.topic]
+            pub.publish(record.raw)
+            self.counts[record.topic] += 1
+            if self.rate == 0 and self.qos[record.topic].reliability == ReliabilityPolicy.RELIABLE:
+                if not pub.wait_for_all_acked(ack):
+                    self.node.get_logger().warning(f'{record.topic}: not acknowledged within {self.ack_timeout} s')
+
+
+# =========================================================================== command line
+def _parse_remap(items: Iterable[str]) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for item in items:
+        src, sep, dst = item.partition(':=')
+        if not sep or not src or not dst:
+            raise ValueError(f"--remap '{item}': expected FROM:=TO")
+        out[src] = dst
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog='gpis-grasp play', description='Replay a bag with rclpy publishers '
+                                '(recorded QoS; a ros2 bag play stand-in).')
+    p.add_argument('bag', help='.mcap file or rosbag2 directory')
+    p.add_argument('--rate', type=float, default=1.0, help='speed factor, 0 = as fast as subscribers allow')
+    p.add_argument('--loop', action='store_true', help='repeat until interrupted')
+    p.add_argument('--topics', nargs='+', default=None, help='only these topics')
+    p.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO', help='rename topics')
+    p.add_argument('--reliable', action='store_true', help='publish every topic RELIABLE')
+    p.add_argument('--wait-for-subscribers', type=float, default=None, metavar='SEC',
+                   help='wait up to SEC for every topic to have a subscriber (default 2 with --rate 0, else 0)')
+    p.add_argument('--keep-alive', action='store_true',
+                   help='keep the (latched) publishers alive after playback until interrupted')
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``gpis-grasp play`` / ``bag_player``: returns 0 on success, 2 on bad arguments, 1 on errors."""
+    from rclpy.utilities import remove_ros_args
+
+    full = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(remove_ros_args(['gpis-grasp-play'] + full)[1:])
+        remap = _parse_remap(args.remap)
+        if not Path(args.bag).exists():
+            raise ValueError(f'bag {args.bag} does not exist')
+    except SystemExit as done:
+        return int(done.code or 0)
+    except ValueError as err:
+        print(f'gpis-grasp play: error: {err}', file=sys.stderr)
+        return 2
+
+    rclpy.init(args=full)
+    node: Node | None = None
+    player: BagPlayer | None = None
+    status = 0
+    try:
+        node = rclpy.create_node('bag_player')
+        player = BagPlayer(node, args.bag, rate=args.rate, loop=args.loop, topics=args.topics, remap=remap,
+                           reliable=args.reliable, wait_for_subscribers=args.wait_for_subscribers)
+        player.play(blocking=False)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        announced = False
+        while rclpy.ok() and (args.keep_alive or not player.done.is_set()):
+            executor.spin_once(timeout_sec=0.1)
+            if args.keep_alive and player.done.is_set() and not announced:
+                announced = True
+                node.get_logger().info(f'played {sum(player.counts.values())} messages; keeping the latched '
+                                       'topics alive (Ctrl-C to quit)')
+        if player.error is not None:
+            status = 1
+        else:
+            total = sum(player.counts.values())
+            node.get_logger().info(f'played {total} messages from {args.bag} ({player.passes} pass(es))')
+    except ValueError as err:
+        print(f'gpis-grasp play: error: {err}', file=sys.stderr)
+        status = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if player is not None:
+            player.stop()
+            player.destroy()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+if __name__ == '__main__':
+    sys.exit(main())

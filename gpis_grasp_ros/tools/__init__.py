@@ -1,0 +1,1 @@
+"""Command line and its commands (demo, make-bag, benchmark, bench). May import anything."""

@@ -1,0 +1,157 @@
+"""GPIS benchmark: fit, joint sampling and GPIS-Blur timings vs scikit-learn (``python -m gpis_grasp_ros.bench gpis``).
+
+Synthetic object on a 14 cm square grid (the same metric scene at every M): a 4 cm disc with a
+handle, a specular tip (missing cells, excluded from training) and a transparent strip (SDF
+noise 1e-4 m^2); elsewhere the 10-frame Carmine noise (0.45 mm)^2.
+
+Columns (times are the best of a few repeats, ms):
+
+* fit fixed:  :func:`~gpis_grasp_ros.core.gpis.fit_gpis` with C and l fixed (mean, variance, gradient
+  and the joint covariance factor), the default path (exact up to 2500 training cells).
+* fit ML:     the same with the maximum-likelihood hyperparameter search.
+* 1000 smp:   1000 joint posterior samples (:meth:`GpisPosterior.sample`).
+* blur:       GPIS-Blur with 1000 samples.
+* sklearn:    ``GaussianProcessRegressor`` with the same fixed kernel and per-point ``alpha``,
+  ``fit`` + ``predict(return_std=True)`` on all cells (mean and marginal std only), after a
+  warm-up call. Every timed call (ours and scikit-learn's) runs with the same BLAS thread
+  count (``--blas-threads``, default 1, the fit's own default; see :func:`gpis.blas_threads`).
+* speed-up:   sklearn / fit fixed.
+* err:        max |mu - mu_sklearn| (m) and max |var - var_sklearn| / max var of our default
+  path and of the reduced-rank path (forced with ``max_exact_points=0`` where the default is
+  exact); sklearn's dense solution is the exact reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from gpis_grasp_ros.core.blur import gpis_blur
+from gpis_grasp_ros.core.gpis import GpisParams, blas_threads, fit_gpis
+from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.sdf import signed_distance
+
+EXTENT_M = 0.14
+BASE_NOISE = (0.45e-3) ** 2
+STRIP_NOISE = 1e-4
+
+
+def synthetic_object(m: int) -> tuple[GridGeometry, np.ndarray, np.ndarray, np.ndarray]:
+    """(geometry, sdf, noise, train_mask) of the benchmark object on an m x m grid."""
+    g = GridGeometry(-EXTENT_M / 2, -EXTENT_M / 2, EXTENT_M / m, m, m, z=0.7, frame_id='bench')
+    c = g.cell_centers()
+    x, y = c[..., 0], c[..., 1]
+    disc = np.hypot(x + 0.01, y) < 0.04
+    handle = (np.abs(y) < 0.008) & (x > 0.0) & (x < 0.05)
+    tip = (np.abs(y) < 0.008) & (x >= 0.035) & (x < 0.05)  # specular end of the handle: no depth
+    strip = (x < -0.02) & (x > -0.06) & (y > 0.025) & (y < 0.045)  # transparent rim: masks disagree
+    occupancy = disc | handle
+    noise = np.full(g.shape, BASE_NOISE)
+    noise[strip] = STRIP_NOISE
+    return g, signed_distance(occupancy, g.resolution), noise, ~tip
+
+
+def best_of(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
+    """Best wall time (ms) of ``repeats`` calls and the last result."""
+    best, out = math.inf, None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best * 1e3, out
+
+
+def sklearn_reference(g: GridGeometry, sdf: np.ndarray, noise: np.ndarray, mask: np.ndarray, c: float, ell: float,
+                      prior: float, jitter: float, repeats: int = 1) -> tuple[float, np.ndarray, np.ndarray]:
+    """scikit-learn GPR at equal settings → (ms, mean (H, W), variance (H, W))."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel
+
+    xy = g.cell_centers()
+    x_train, y_train = xy[mask], sdf[mask] - prior
+    kernel = ConstantKernel(c, constant_value_bounds='fixed') * RBF(ell, length_scale_bounds='fixed')
+
+    def fit_predict() -> tuple[np.ndarray, np.ndarray]:
+        gpr = GaussianProcessRegressor(kernel=kernel, alpha=noise[mask] + jitter, optimizer=None, normalize_y=False)
+        gpr.fit(x_train, y_train)
+        return gpr.predict(xy.reshape(-1, 2), return_std=True)
+
+    ms, (mean, std) = best_of(fit_predict, repeats)
+    return ms, mean.reshape(g.shape) + prior, (std ** 2).reshape(g.shape)
+
+
+def bench_size(m: int, with_sklearn: bool = True, seed: int = 0) -> dict:
+    """One table row for an m x m grid."""
+    g, sdf, noise, mask = synthetic_object(m)
+    reps = 5 if m <= 25 else (3 if m <= 50 else 2)
+    t_ml, post_ml = best_of(lambda: fit_gpis(sdf, noise, mask, g, GpisParams(seed=seed)), 1 if m > 25 else 2)
+    kp = post_ml.params
+    fixed = GpisParams(optimize_hyperparameters=False, signal_variance=kp.signal_variance, length_scale=kp.length_scale)
+    t_fit, post = best_of(lambda: fit_gpis(sdf, noise, mask, g, fixed), reps)
+    rng = np.random.default_rng(seed)
+    t_smp, _ = best_of(lambda: post.sample(1000, rng), 3)
+    t_blur, _ = best_of(lambda: gpis_blur(post, 1000, np.random.default_rng(seed)), 3 if m <= 50 else 2)
+    row = dict(m=m, n=int(mask.sum()), rank=post.rank, path=post.approximation, fit=t_fit, fit_ml=t_ml,
+               sample=t_smp, blur=t_blur, c=kp.signal_variance, ell=kp.length_scale, sk=math.nan,
+               speedup=math.nan, err_mu=math.nan, err_var=math.nan, rr_mu=math.nan, rr_var=math.nan)
+    if not with_sklearn:
+        return row
+    if post.approximation == 'exact':
+        rr_params = GpisParams(optimize_hyperparameters=False, signal_variance=kp.signal_variance,
+                               length_scale=kp.length_scale, max_exact_points=0)
+        rr = fit_gpis(sdf, noise, mask, g, rr_params)
+    else:
+        rr = post
+    t_sk, mu_sk, var_sk = sklearn_reference(g, sdf, noise, mask, kp.signal_variance, kp.length_scale,
+                                            kp.prior_mean, fixed.jitter, 3 if m <= 50 else 1)
+    vmax = float(var_sk.max())
+    row.update(sk=t_sk, speedup=t_sk / t_fit,
+               err_mu=float(np.abs(post.mean - mu_sk).max()),
+               err_var=float(np.abs(post.variance - var_sk).max() / vmax),
+               rr_mu=float(np.abs(rr.mean - mu_sk).max()),
+               rr_var=float(np.abs(rr.variance - var_sk).max() / vmax))
+    return row
+
+
+def run(sizes: list[int], with_sklearn: bool = True, seed: int = 0) -> list[dict]:
+    """Print and return one row per grid size."""
+    if with_sklearn:  # warm-up: the first GaussianProcessRegressor call pays imports and set-up
+        g, sdf, noise, mask = synthetic_object(8)
+        sklearn_reference(g, sdf, noise, mask, 1e-4, 0.02, -0.01, 1e-10)
+    rows = []
+    for m in sizes:
+        rows.append(bench_size(m, with_sklearn, seed))
+        print_row(rows[-1])
+    return rows
+
+
+HEADER = (f"{'M':>4} {'n':>6} {'path':>12} {'rank':>5} {'fit fixed':>10} {'fit ML':>9} {'1000 smp':>9} "
+          f"{'blur':>8} {'sklearn':>9} {'speed-up':>9} {'err mu':>9} {'err var':>9} {'rr err mu':>10} "
+          f"{'rr err var':>10}   ML hyperparameters")
+
+
+def print_row(r: dict) -> None:
+    print(f"{r['m']:>4} {r['n']:>6} {r['path']:>12} {r['rank']:>5} {r['fit']:>10.1f} {r['fit_ml']:>9.0f} "
+          f"{r['sample']:>9.1f} {r['blur']:>8.1f} {r['sk']:>9.0f} {r['speedup']:>8.1f}x {r['err_mu']:>9.1e} "
+          f"{r['err_var']:>9.1e} {r['rr_mu']:>10.1e} {r['rr_var']:>10.1e}   "
+          f"sqrt(C) {math.sqrt(r['c']) * 1e3:.1f} mm, l {r['ell'] * 1e3:.1f} mm", flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='python -m gpis_grasp_ros.bench gpis', description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--sizes', type=int, nargs='+', default=[25, 50, 100], help='grid sizes M')
+    parser.add_argument('--no-sklearn', action='store_true', help='skip the scikit-learn reference')
+    parser.add_argument('--blas-threads', type=int, default=1,
+                        help='BLAS threads for every timed call, ours and scikit-learn alike (0 = library default)')
+    args = parser.parse_args(argv)
+    print(f'GPIS benchmark: times in ms (best of repeats), BLAS threads: {args.blas_threads or "default"}; '
+          'err = max deviation from the exact dense GP (scikit-learn); rr = reduced-rank path')
+    print(HEADER, flush=True)
+    with blas_threads(args.blas_threads):
+        run(args.sizes, with_sklearn=not args.no_sklearn)
+    return 0

@@ -1,0 +1,221 @@
+"""Aggregation of the evaluation rows and the Markdown/CSV reports (Table I, goal figures)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpis_grasp_ros.tools.benchmark.evaluation import METHOD_BY_KEY, PAPER_COLUMNS, PAPER_TABLE1, BenchmarkResult
+
+# ------------------------------------------------------------------------------------------
+# Aggregation and tables
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Cell:
+    """Aggregate over seeds of one object × method."""
+
+    p_f: float
+    p_f_min: float
+    p_f_max: float
+    p_f_se: float  # mean Monte-Carlo standard error of one seed's estimate
+    q_f_mean: float
+    q_n: float  # mean over seeds, degenerate grasps counted as 0
+    q_n_fc: int  # seeds whose grasp is in force closure on the true shape (Q_N > 0)
+    sim_successes: int
+    sim_trials: int
+    time_worst: float
+    time_median: float
+    n_seeds: int
+    failures: int  # seeds without a grasp
+
+
+def aggregate(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str], Cell]:
+    """(object, method) → :class:`Cell` over the seeds in ``rows``."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault((row['object'], row['method']), []).append(row)
+    out = {}
+    for key, rs in groups.items():
+        p = np.array([r['p_f'] for r in rs], dtype=np.float64)
+        qn = np.array([r['q_n'] for r in rs], dtype=np.float64)
+        qf = np.array([r['q_f_mean'] for r in rs], dtype=np.float64)
+        t = np.array([r['planning_time_s'] for r in rs], dtype=np.float64)
+        out[key] = Cell(p_f=float(p.mean()), p_f_min=float(p.min()), p_f_max=float(p.max()),
+                        p_f_se=float(np.mean([r['p_f_std_error'] for r in rs])),
+                        q_f_mean=float(np.nanmean(qf)) if np.isfinite(qf).any() else float('nan'),
+                        q_n=float(np.mean(np.nan_to_num(qn, nan=0.0))), q_n_fc=int(np.count_nonzero(qn > 0)),
+                        sim_successes=int(sum(r['sim_successes'] for r in rs)),
+                        sim_trials=int(sum(r['sim_trials'] for r in rs)),
+                        time_worst=float(t.max()), time_median=float(np.median(t)), n_seeds=len(rs),
+                        failures=sum(1 for r in rs if not r['success']))
+    return out
+
+
+def goal_figures(result: BenchmarkResult) -> dict[str, Any]:
+    """The issue's goal figures, measured (reported, not asserted)."""
+    cells = aggregate(result.rows)
+    objs = [o.object for o in result.objects]
+    by = {o.object: o for o in result.objects}
+    n = len(objs)
+    within = [o for o in objs if cells[(o, 'gp-g')].p_f >= cells[(o, 'gp-p')].p_f - 0.05]
+    above_m = [o for o in objs if cells[(o, 'gp-g')].p_f > cells[(o, 'gp-m')].p_f]
+    ratios = {by[o].letter: cells[(o, 'gp-p')].time_worst / max(cells[(o, 'gp-g')].time_worst, 1e-9) for o in objs}
+    med = [cells[(o, 'gp-p')].time_median / max(cells[(o, 'gp-g')].time_median, 1e-9) for o in objs]
+    out: dict[str, Any] = {
+        'time_ratio_median_mean': float(np.mean(med)) if med else float('nan'),
+        'n_objects': n,
+        'gp_g_within_0.05_of_gp_p': [by[o].letter for o in within],
+        'gp_g_above_gp_m': [by[o].letter for o in above_m],
+        'time_ratio_gp_p_over_gp_g_worst': ratios,
+        'time_ratio_mean': float(np.mean(list(ratios.values()))) if ratios else float('nan'),
+        'time_ratio_median_per_object': {by[o].letter: cells[(o, 'gp-p')].time_median
+                                         / max(cells[(o, 'gp-g')].time_median, 1e-9) for o in objs},
+        'time_ratio_of_mean_times': float(np.mean([cells[(o, 'gp-p')].time_worst for o in objs])
+                                          / max(np.mean([cells[(o, 'gp-g')].time_worst for o in objs]), 1e-9)),
+    }
+    a = [o for o in objs if by[o].letter == 'A']
+    if a:
+        for key in ('gp-m', 'gp-p', 'gp-g', 'gp-g-reranked'):
+            c = cells[(a[0], key)]
+            out[f'A_sim_success_{key}'] = c.sim_successes / max(c.sim_trials, 1)
+    return out
+
+
+def _f2(x: float) -> str:
+    return '—' if not math.isfinite(x) else f'{x:.2f}'
+
+
+def _ratio(x: float) -> str:
+    return f'{x:.1f}x' if x < 10 else f'{x:.0f}x'
+
+
+def _rate(successes: int, trials: int) -> str:
+    return f'{successes}/{trials} ({successes / max(trials, 1):.2f})'
+
+
+def _time(x: float) -> str:
+    if not math.isfinite(x):
+        return '—'
+    return f'{x:.3f}' if x < 1 else f'{x:.2f}' if x < 100 else f'{x:.0f}'
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]], align: str | None = None) -> list[str]:
+    align = align or 'l' + 'r' * (len(header) - 1)
+    sep = ['---:' if a == 'r' else '---' for a in align]
+    lines = ['| ' + ' | '.join(header) + ' |', '| ' + ' | '.join(sep) + ' |']
+    lines += ['| ' + ' | '.join(r) + ' |' for r in rows]
+    return lines
+
+
+def table1_markdown(result: BenchmarkResult) -> str:
+    """The contents of ``table1.md`` (see the module docstring)."""
+    s = result.settings
+    cells = aggregate(result.rows)
+    objs = result.objects
+    lines = [
+        '# Table I — probability of force closure and runtime (ours vs. the paper)', '',
+        f'{len(objs)} objects (simulated Carmine bags), GPIS on {s.grid_size} x {s.grid_size} cells built as the '
+        f'nodes build it; N_g = {s.n_initial_grasps}, λ = {s.uncertainty_penalty:g}, K = {s.grasp_samples} grasp '
+        f'samples, S = {s.shape_samples} shape samples, σ_g = 0.5 cell, {s.seeds} seed(s). GP-P is brute force '
+        '(every candidate scored on all S samples), as in the paper.', '',
+        f'P_F: mean over seeds of the Monte-Carlo estimate on S = {s.shape_samples} evaluation shape samples '
+        f'(std error of one estimate ≤ {0.5 / math.sqrt(max(s.shape_samples, 1)):.3f}); the paper\'s value in '
+        'parentheses. Runtime: worst case over seeds of the planning time (s) on this machine, one core per '
+        'object; the paper\'s worst-case runtime (Matlab, 2.7 GHz laptop) and time ratio in parentheses.', '',
+    ]
+    header = ['Object'] + [METHOD_BY_KEY[k].label for k in PAPER_COLUMNS] + ['GP-P time (s)', 'GP-G time (s)',
+                                                                                 'GP-P / GP-G']
+    rows = []
+    for o in objs:
+        paper = PAPER_TABLE1.get(o.letter, {})
+        r = [o.letter]
+        for k in PAPER_COLUMNS:
+            c = cells[(o.object, k)]
+            ref = f' ({paper[k]:.2f})' if k in paper else ''
+            r.append(f'{_f2(c.p_f)}{ref}' + (f' [{c.failures} failed]' if c.failures else ''))
+        tp, tg = cells[(o.object, 'gp-p')].time_worst, cells[(o.object, 'gp-g')].time_worst
+        r.append(_time(tp) + (f' ({paper["time_gp-p"]:g})' if paper else ''))
+        r.append(_time(tg) + (f' ({paper["time_gp-g"]:g})' if paper else ''))
+        ratio_ref = f' ({paper["time_gp-p"] / paper["time_gp-g"]:.1f}x)' if paper else ''
+        r.append(f'{tp / max(tg, 1e-9):.1f}x{ratio_ref}')
+        rows.append(r)
+    lines += _table(header, rows)
+    g = goal_figures(result)
+    n = g['n_objects']
+    lines += ['', f'GP-G P_F ≥ GP-P − 0.05 on {len(g["gp_g_within_0.05_of_gp_p"])} of {n} objects '
+              f'({", ".join(g["gp_g_within_0.05_of_gp_p"]) or "none"}); GP-G P_F > GP-M on '
+              f'{len(g["gp_g_above_gp_m"])} of {n} ({", ".join(g["gp_g_above_gp_m"]) or "none"}). '
+              f'Worst-case time ratio GP-P / GP-G: mean over objects {g["time_ratio_mean"]:.1f}x '
+              f'(ratio of the mean worst-case times {g["time_ratio_of_mean_times"]:.1f}x; mean over objects of the '
+              f'median-time ratio {g["time_ratio_median_mean"]:.1f}x; paper: 5.7x).', '']
+
+    extra = [METHOD_BY_KEY[k] for k in ('gp-m', 'gp-d', 'gp-u', 'gp-p', 'gp-p-adaptive', 'gp-g', 'gp-g-reranked')]
+    lines += ['## Beyond the paper: re-ranked GP-G, adaptive GP-P, centre-of-mass spread', '',
+              'P_F (mean over seeds; min–max over seeds in brackets), median / worst planning time (s), COM spread '
+              'over 1000 joint shape samples (RMS and 95th percentile of the distance to the mean shape\'s COM, '
+              'in cells; the paper\'s condition 1 asks for < 1 cell), IoU of the mean shape with the true shape.', '']
+    header = ['Object', 'GP-G P_F', 'GP-G re-ranked P_F', 'GP-G re-ranked time', 'GP-P adaptive P_F',
+              'GP-P adaptive time', 'GP-G time', 'COM spread RMS / p95 (cells)', 'mean-shape IoU']
+    rows = []
+    for o in objs:
+        g_, rr, pa = (cells[(o.object, k)] for k in ('gp-g', 'gp-g-reranked', 'gp-p-adaptive'))
+        rows.append([o.letter, f'{_f2(g_.p_f)} [{_f2(g_.p_f_min)}–{_f2(g_.p_f_max)}]',
+                     f'{_f2(rr.p_f)} [{_f2(rr.p_f_min)}–{_f2(rr.p_f_max)}]',
+                     f'{_time(rr.time_median)} / {_time(rr.time_worst)}',
+                     f'{_f2(pa.p_f)} [{_f2(pa.p_f_min)}–{_f2(pa.p_f_max)}]',
+                     f'{_time(pa.time_median)} / {_time(pa.time_worst)}',
+                     f'{_time(g_.time_median)} / {_time(g_.time_worst)}',
+                     f'{o.info["com_spread_rms_cells"]:.2f} / {o.info["com_spread_p95_cells"]:.2f}',
+                     _f2(o.info['mean_shape_iou'])])
+    lines += _table(header, rows)
+
+    lines += ['', '## Q_N — Ferrari–Canny quality of the planned grasp on the true shape', '',
+              'Mean over seeds of Q_N (unperturbed grasp, true SDF, true centre of mass; a grasp that misses the '
+              'true object or starts inside it counts as 0); in brackets the number of seeds whose grasp is in '
+              'force closure on the true shape (Q_N > 0).', '']
+    header = ['Object'] + [m.label for m in extra]
+    rows = [[o.letter] + [f'{_f2(cells[(o.object, m.key)].q_n)} [{cells[(o.object, m.key)].q_n_fc}/'
+                          f'{cells[(o.object, m.key)].n_seeds}]' for m in extra] for o in objs]
+    lines += _table(header, rows)
+
+    lines += ['', '## Simulated gripper on the true shape', '',
+              f'Force-closure successes / executions ({s.trials} per seed, σ_g = 0.5 planning cell, true centre of '
+              'mass), summed over seeds.', '']
+    rows = [[o.letter] + [_rate(cells[(o.object, m.key)].sim_successes, cells[(o.object, m.key)].sim_trials)
+                          for m in extra] for o in objs]
+    lines += _table(header, rows)
+
+    lines += ['', '## Q_F on the GPIS mean shape', '', 'Mean over seeds (— : degenerate on the mean).', '']
+    rows = [[o.letter] + [_f2(cells[(o.object, m.key)].q_f_mean) for m in extra] for o in objs]
+    lines += _table(header, rows)
+
+    lines += ['', '## Planning time (s): median / worst case over seeds', '']
+    rows = [[o.letter] + [f'{_time(c.time_median)} / {_time(c.time_worst)}'
+                          for c in (cells[(o.object, m.key)] for m in extra)] for o in objs]
+    lines += _table(header, rows)
+    lines += ['', f'Wall time of the run: {result.wall_time_s:.1f} s with {result.workers} worker process(es) '
+              f'on {os.cpu_count()} CPU core(s).', '']
+    return '\n'.join(lines)
+
+
+def write_results_csv(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
+    """One row per object × method × seed (columns in the order of the first row)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, 'w', newline='') as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        writer.writeheader()
+        for r in rows:
+            writer.writerow({k: (f'{v:.10g}' if isinstance(v, float) else v) for k, v in r.items()})
+    return path
+
+
+# END

@@ -1,0 +1,1 @@
+"""Images of grids, GPIS and grasps (numpy + OpenCV). May import ``core`` and ``viz``."""

@@ -1,0 +1,169 @@
+"""Contact finding (paper V-B): analytic shapes, jaw width, degenerate cases, batching."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, bilinear, find_contacts, perturb_grasps
+from gpis_grasp_ros.core.grid import GridGeometry
+from synthetic_shapes import disc_sdf, make_geometry, rectangle_sdf, union
+
+G = make_geometry()  # 25 x 25, 5 mm cells, corner at the origin
+CENTRE = np.array([0.0625, 0.0625])
+RES = G.resolution
+
+
+def _directions(n: int, rng: np.random.Generator) -> np.ndarray:
+    th = rng.uniform(0, 2 * np.pi, n)
+    return np.stack([np.cos(th), np.sin(th)], axis=1)
+
+
+def test_gripper_params_units() -> None:
+    gr = GripperParams()
+    assert gr.sigma_g(G) == pytest.approx(0.5 * RES)  # paper: sigma_g^2 = 0.25 cells^2
+    assert GripperParams.position_noise_from_cells(0.5, G) == pytest.approx(0.0025)
+    assert gr.resolved(G).position_noise == pytest.approx(0.0025)
+    assert GripperParams(position_noise=0.001).sigma_g(G) == 0.001
+    assert gr.beta == pytest.approx(1 / math.sqrt(1 + 0.25))
+    off = gr.face_offsets(G)
+    assert off[0] == pytest.approx(-0.005) and off[-1] == pytest.approx(0.005)
+    assert np.max(np.diff(off)) <= RES + 1e-12  # lines at most one cell apart
+    with pytest.raises(ValueError):
+        GripperParams(max_opening=0.0)
+
+
+def test_disc_contacts_on_boundary_subcell() -> None:
+    """A single-line jaw lands on an exact disc SDF within a few hundredths of a cell."""
+    radius = 0.03
+    bank = SdfBank(disc_sdf(G, tuple(CENTRE), radius), G)
+    rng = np.random.default_rng(0)
+    u = _directions(500, rng)
+    perp = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    off = rng.uniform(-0.02, 0.02, (500, 1)) * perp
+    thin = GripperParams(jaw_width=0.0)
+    con = find_contacts(bank, CENTRE - 0.045 * u + off, CENTRE + 0.045 * u + off, thin)
+    assert con.valid.all()
+    for c in (con.c1, con.c2):
+        r = np.linalg.norm(c - CENTRE, axis=1)
+        assert np.max(np.abs(r - radius)) < 0.03 * RES
+    # normals point outward, along the radius
+    radial = (con.c1 - CENTRE) / np.linalg.norm(con.c1 - CENTRE, axis=1, keepdims=True)
+    assert np.min(np.sum(con.n1 * radial, axis=1)) > 0.999
+    # jaw 1 touches the side facing it
+    assert np.all(np.sum((con.c1 - CENTRE) * u, axis=1) < 0)
+    # a wide jaw still lands on the surface to sub-cell accuracy (contact-patch centre)
+    wide = find_contacts(bank, CENTRE - 0.045 * u, CENTRE + 0.045 * u, GripperParams())
+    assert np.max(np.abs(np.linalg.norm(wide.c1 - CENTRE, axis=1) - radius)) < 0.1 * RES
+
+
+def test_rectangle_faces_and_normals() -> None:
+    half = (0.015, 0.01)
+    bank = SdfBank(rectangle_sdf(G, tuple(CENTRE), half), G)
+    ys = np.linspace(-0.004, 0.004, 7)  # the whole 1 cm jaw face stays on the 2 cm face
+    j1 = np.stack([np.full(7, CENTRE[0] - 0.04), CENTRE[1] + ys], axis=1)
+    j2 = j1 + [0.08, 0.0]
+    con = find_contacts(bank, j1, j2, GripperParams())
+    assert con.valid.all()
+    np.testing.assert_allclose(con.c1[:, 0], CENTRE[0] - half[0], atol=0.02 * RES)
+    np.testing.assert_allclose(con.c2[:, 0], CENTRE[0] + half[0], atol=0.02 * RES)
+    np.testing.assert_allclose(con.c1[:, 1], j1[:, 1], atol=1e-9)  # flat face: patch centre on the axis
+    np.testing.assert_allclose(con.n1, np.tile([-1.0, 0.0], (7, 1)), atol=1e-6)
+    np.testing.assert_allclose(con.n2, np.tile([1.0, 0.0], (7, 1)), atol=1e-6)
+    np.testing.assert_allclose(con.clearance1, 0.04 - half[0], atol=1e-6)
+
+
+def test_jaw_width_catches_thin_spike() -> None:
+    """A spike beside the closing axis is missed by a point jaw but caught by a 1 cm jaw."""
+    body = rectangle_sdf(G, tuple(CENTRE), (0.01, 0.01))
+    spike_y = CENTRE[1] + 0.0055  # spans 2.5..8.5 mm off the axis: beside a point jaw, under a 1 cm jaw
+    spike = rectangle_sdf(G, (CENTRE[0] - 0.016, spike_y), (0.007, 0.003))
+    bank = SdfBank(union(body, spike), G)
+    j1 = CENTRE - [0.044, 0.0]
+    j2 = CENTRE + [0.044, 0.0]
+    point = find_contacts(bank, j1, j2, GripperParams(jaw_width=0.0))
+    wide = find_contacts(bank, j1, j2, GripperParams(jaw_width=0.01))
+    assert point.c1[0] == pytest.approx(CENTRE[0] - 0.01, abs=0.05 * RES)  # body face
+    assert wide.c1[0] == pytest.approx(CENTRE[0] - 0.023, abs=0.1 * RES)  # spike tip
+    assert wide.c1[1] == pytest.approx(spike_y, abs=0.5 * RES)
+    assert wide.c2[0] == pytest.approx(CENTRE[0] + 0.01, abs=0.05 * RES)  # other side: body face
+
+
+def test_degenerate_cases_flagged() -> None:
+    bank = SdfBank(disc_sdf(G, tuple(CENTRE), 0.02), G)
+    gr = GripperParams()
+    # jaws pass beside the object
+    miss = find_contacts(bank, CENTRE + [-0.04, 0.035], CENTRE + [0.04, 0.035], gr)
+    assert miss.no_contact and not miss.valid and np.all(np.isnan(miss.c1))
+    # jaw 1 starts inside
+    inside = find_contacts(bank, CENTRE + [-0.01, 0.0], CENTRE + [0.05, 0.0], gr)
+    assert inside.start_inside and not inside.valid
+    # opening exceeded (only when checked)
+    wide = find_contacts(bank, CENTRE - [0.05, 0.0], CENTRE + [0.05, 0.0], gr)
+    assert wide.opening_exceeded and not wide.valid and not wide.no_contact
+    unchecked = find_contacts(bank, CENTRE - [0.05, 0.0], CENTRE + [0.05, 0.0], gr, check_opening=False)
+    assert unchecked.valid
+
+
+def test_jaws_off_grid_and_translation() -> None:
+    """Jaws may start off the grid; shifting object and jaws by whole cells shifts the contacts."""
+    bank = SdfBank(disc_sdf(G, (0.035, 0.0625), 0.02), G)
+    j1, j2 = np.array([-0.01, 0.0625]), np.array([0.08, 0.0625])  # jaw 1 two cells off the grid
+    con = find_contacts(bank, j1, j2, GripperParams())
+    assert con.valid
+    assert con.c1[0] == pytest.approx(0.015, abs=0.1 * RES)
+    g2 = GridGeometry(0.1, -0.2, RES, 25, 25)
+    shift = np.array([0.1, -0.2])
+    bank2 = SdfBank(disc_sdf(g2, (0.035 + 0.1, 0.0625 - 0.2), 0.02), g2)
+    con2 = find_contacts(bank2, j1 + shift, j2 + shift, GripperParams())
+    np.testing.assert_allclose(con2.c1, con.c1 + shift, atol=1e-9)
+    np.testing.assert_allclose(con2.n1, con.n1, atol=1e-6)
+    # far off-grid (beyond the padding) uses the clamped path and still works
+    far = find_contacts(bank, np.array([-0.045, 0.0625]), np.array([0.06, 0.0625]), GripperParams(max_opening=0.11))
+    assert far.valid and far.c1[0] == pytest.approx(0.015, abs=0.1 * RES)
+
+
+def test_batched_samples_match_single_evaluation() -> None:
+    """(G, S) batches with a per-trial grid index equal one-by-one evaluation."""
+    rng = np.random.default_rng(3)
+    grids = np.stack([disc_sdf(G, tuple(CENTRE + rng.normal(0, 0.003, 2)), r) for r in (0.02, 0.025, 0.03)])
+    bank = SdfBank(grids, G)
+    u = _directions(4, rng)
+    j1 = (CENTRE - 0.044 * u)[:, None, :]
+    j2 = (CENTRE + 0.044 * u)[:, None, :]
+    idx = np.arange(3)[None, :]
+    con = find_contacts(bank, j1, j2, GripperParams(), index=idx)
+    assert con.c1.shape == (4, 3, 2) and con.valid.shape == (4, 3)
+    for gi in range(4):
+        for s in range(3):
+            single = find_contacts(SdfBank(grids[s], G), j1[gi, 0], j2[gi, 0], GripperParams())
+            np.testing.assert_allclose(con.c1[gi, s], single.c1, atol=1e-9)
+            np.testing.assert_allclose(con.n2[gi, s], single.n2, atol=1e-9)
+
+
+def test_sample_normals_from_finite_differences() -> None:
+    """Default bank normals come from the grid itself (what MC samples need), analytic gradient optional."""
+    sdf = disc_sdf(G, tuple(CENTRE), 0.03)
+    pts = CENTRE + 0.03 * _directions(50, np.random.default_rng(1))
+    radial = (pts - CENTRE) / 0.03
+    fd = SdfBank(sdf, G).normals_at(pts)
+    assert np.min(np.sum(fd * radial, axis=1)) > 0.995
+    wrong = np.zeros(G.shape + (2,))
+    wrong[..., 1] = 1.0
+    np.testing.assert_allclose(SdfBank(sdf, G, gradients=wrong).normals_at(pts), np.tile([0, 1.0], (50, 1)))
+    np.testing.assert_allclose(bilinear(sdf, G, pts), 0.0, atol=0.05 * RES)
+
+
+def test_perturbation_model() -> None:
+    """ĝ1 ~ N(g1, σ² I) and ĝ2 − ĝ1 ~ N(g2 − g1, σ² I) (paper V-B)."""
+    rng = np.random.default_rng(7)
+    eps = rng.standard_normal((200000, 2, 2))
+    g1, g2 = np.array([0.01, 0.02]), np.array([0.08, 0.03])
+    p1, p2 = perturb_grasps(g1, g2, eps, 0.002)
+    np.testing.assert_allclose(p1.mean(axis=0), g1, atol=3e-5)
+    np.testing.assert_allclose(np.cov(p1.T), 0.002 ** 2 * np.eye(2), atol=2e-7)
+    d = p2 - p1 - (g2 - g1)
+    np.testing.assert_allclose(d.mean(axis=0), 0.0, atol=3e-5)
+    np.testing.assert_allclose(np.cov(d.T), 0.002 ** 2 * np.eye(2), atol=2e-7)

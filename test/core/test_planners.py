@@ -1,0 +1,172 @@
+"""Grasp planners (paper VI, VII-B) on synthetic GPIS posteriors with a "transparent" uncertain part."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, bilinear, find_contacts
+from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.planners import (
+    METHODS,
+    GraspResult,
+    PlannerParams,
+    PlanningContext,
+    execute_grasp_trials,
+    plan,
+    sample_heuristic_grasps,
+    sample_valid_grasps,
+)
+from synthetic_shapes import (
+    certain_rectangle_posterior,
+    make_geometry,
+    make_posterior,
+    rectangle_sdf,
+    transparent_part_posterior,
+)
+
+POST, UNCERTAIN = transparent_part_posterior()
+PARAMS = PlannerParams()
+
+
+@pytest.fixture(scope='module')
+def results() -> dict[str, GraspResult]:
+    return {m: plan(m, POST, PARAMS, seed=11) for m in ('gp-m', 'gp-p', 'gp-gpis-opt', 'gp-gpis-opt-reranked')}
+
+
+def _contact_variance_cells(res: GraspResult) -> np.ndarray:
+    bank = SdfBank(POST.mean, POST.geometry, gradients=POST.gradient)
+    con = find_contacts(bank, res.jaw1, res.jaw2, PARAMS.gripper)
+    pts = np.stack([con.c1, con.c2])
+    return bilinear(POST.variance, POST.geometry, pts) / POST.geometry.resolution ** 2
+
+
+def test_uncertainty_aware_planners_beat_gp_m(results: dict[str, GraspResult]) -> None:
+    """GP-G and GP-P avoid the transparent part and reach a higher P_F than GP-M (Table I, Fig. 4)."""
+    m, p, g = results['gp-m'], results['gp-p'], results['gp-gpis-opt']
+    assert np.max(_contact_variance_cells(m)) > 1.0  # GP-M grasps the (uncertain) transparent part
+    for r in (p, g):
+        assert np.max(_contact_variance_cells(r)) < 0.1  # both contacts on the well-observed body
+        assert r.p_f > m.p_f + 0.2
+        assert r.p_f >= 0.8
+    assert results['gp-gpis-opt-reranked'].p_f >= 0.8
+
+
+def test_gp_g_satisfies_antipodal_constraints(results: dict[str, GraspResult]) -> None:
+    r = results['gp-gpis-opt']
+    assert r.success and r.feasible
+    bank = SdfBank(POST.mean, POST.geometry, gradients=POST.gradient)
+    con = find_contacts(bank, r.jaw1, r.jaw2, PARAMS.gripper)
+    assert con.valid
+    v = (r.jaw1 - r.jaw2) / np.linalg.norm(r.jaw1 - r.jaw2)
+    tol = PARAMS.constraint_tol
+    assert np.sum((con.n1 + con.n2) ** 2) <= PARAMS.antipodal_alpha + tol
+    assert con.n1 @ v >= PARAMS.beta - tol
+    assert -con.n2 @ v >= PARAMS.beta - tol
+    assert r.width <= PARAMS.gripper.max_opening + 1e-12
+    assert min(con.clearance1, con.clearance2) >= -tol * POST.geometry.resolution
+    assert r.iterations > 0 and len(r.restarts) == PARAMS.n_initial_grasps
+    assert max(x.objective for x in r.restarts if x.feasible) == pytest.approx(r.objective)
+
+
+def test_results_fully_filled(results: dict[str, GraspResult]) -> None:
+    for name, r in results.items():
+        assert r.method == name and r.success and r.message == 'ok'
+        for arr in (r.jaw1, r.jaw2, r.center, r.axis):
+            assert arr.shape == (2,) and np.all(np.isfinite(arr))
+        assert np.linalg.norm(r.axis) == pytest.approx(1.0)
+        np.testing.assert_allclose(r.jaw1 + r.width * r.axis, r.jaw2, atol=1e-12)
+        np.testing.assert_allclose(r.center, 0.5 * (r.jaw1 + r.jaw2))
+        assert 0.0 <= r.p_f <= 1.0 and r.p_f_std_error == pytest.approx(math.sqrt(r.p_f * (1 - r.p_f) / 1000))
+        assert np.isfinite(r.q_mean) and np.isfinite(r.objective)
+        assert r.planning_time > 0 and r.evaluation_time > 0 and r.seed == 11
+    assert results['gp-m'].objective == pytest.approx(results['gp-m'].q_mean)
+    rer = results['gp-gpis-opt-reranked']
+    assert rer.objective == pytest.approx(max(x.p_f for x in rer.restarts))
+
+
+def test_same_seed_same_grasp_and_common_evaluation() -> None:
+    params = PlannerParams(n_shape_samples=200, n_grasp_samples=200, n_initial_grasps=6)
+    for method in ('gp-gpis-opt', 'gp-p', 'gp-m', 'gp-u'):
+        a = plan(method, POST, params, seed=3)
+        b = plan(method, POST, params, seed=3)
+        np.testing.assert_array_equal(a.jaw1, b.jaw1)
+        np.testing.assert_array_equal(a.jaw2, b.jaw2)
+        assert a.p_f == b.p_f
+    c = plan('gp-m', POST, params, seed=4)
+    assert not np.array_equal(c.jaw1, plan('gp-m', POST, params, seed=3).jaw1)
+    # params.seed is used when no seed is passed
+    seeded = PlannerParams(n_shape_samples=200, n_grasp_samples=200, seed=3)
+    np.testing.assert_array_equal(plan('gp-m', POST, seeded).jaw1, plan('gp-m', POST, params, seed=3).jaw1)
+
+
+def test_gp_d_and_gp_u_single_start_optimisers() -> None:
+    params = PlannerParams(n_shape_samples=200)
+    for method in ('gp-d', 'gp-u'):
+        r = plan(method, POST, params, seed=5)
+        assert r.method == method and len(r.restarts) == params.n_initial_grasps_baseline
+        assert r.iterations >= 1 and np.isfinite(r.objective)
+        assert r.width <= params.gripper.max_opening + 1e-12
+    # on a certain rectangle the local optimiser reaches force closure
+    rect = certain_rectangle_posterior()
+    r = plan('gp-d', rect, params, seed=1)
+    assert r.success and r.p_f > 0.9 and r.objective > 0.9
+
+
+def test_dispatcher_names() -> None:
+    params = PlannerParams(n_shape_samples=50, n_grasp_samples=50, n_initial_grasps=2)
+    assert plan('gp-g', POST, params, seed=1).method == 'gp-gpis-opt'
+    assert plan('GP-M', POST, params, seed=1).method == 'gp-m'
+    with pytest.raises(ValueError) as err:
+        plan('gp-x', POST, params)
+    for name in METHODS:
+        assert name in str(err.value)
+
+
+def test_heuristic_sampler_geometry() -> None:
+    ctx = PlanningContext(POST, PARAMS)
+    j1, j2 = sample_heuristic_grasps(ctx, 400, np.random.default_rng(0))
+    width = np.linalg.norm(j2 - j1, axis=1)
+    np.testing.assert_allclose(width, PARAMS.gripper.max_opening)
+    # the grasp line is centred on the interior chord of the mean shape along it
+    u = (j2 - j1) / width[:, None]
+    centre = 0.5 * (j1 + j2)
+    t = np.linspace(-0.08, 0.08, 641)
+    vals = ctx.mean_bank.values(centre[:, None, :] + t[None, :, None] * u[:, None, :])
+    neg = vals < 0
+    assert neg.any(axis=1).all()
+    lo = t[np.argmax(neg, axis=1)]
+    hi = t[len(t) - 1 - np.argmax(neg[:, ::-1], axis=1)]
+    assert np.max(np.abs(lo + hi)) < 2 * 0.25 * 0.005 + 1e-9
+    # valid initial grasps are valid on the mean shape and diverse
+    v1, v2 = sample_valid_grasps(ctx, 20, np.random.default_rng(1))
+    assert v1.shape == (20, 2) and find_contacts(ctx.mean_bank, v1, v2, PARAMS.gripper).valid.all()
+    assert len({tuple(np.round(a, 6)) for a in v1}) == 20
+
+
+def test_no_valid_grasp_reports_failure() -> None:
+    g = make_geometry()
+    big = make_posterior(rectangle_sdf(g, (0.0625, 0.0625), (0.055, 0.055)), g, 0.0005)  # wider than w_g
+    params = PlannerParams(n_shape_samples=50, n_grasp_samples=100, n_initial_grasps=4, max_sampling_rounds=2)
+    for method in ('gp-gpis-opt', 'gp-m'):
+        r = plan(method, big, params, seed=0)
+        assert not r.success and r.message and np.all(np.isnan(r.jaw1)) and r.p_f == 0.0
+
+
+def test_execute_grasp_trials_on_a_finer_true_grid() -> None:
+    """Simulated execution closes on the TRUE SDF, whose grid differs from the planning grid."""
+    true_g = GridGeometry(-0.02, -0.01, 0.002, 80, 80)
+    c = np.array([0.0625, 0.0625])
+    true_sdf = rectangle_sdf(true_g, tuple(c), (0.015, 0.01))
+    gripper = GripperParams().resolved(make_geometry())  # σ_g fixed on the 5 mm planning grid
+    rng = np.random.default_rng(0)
+    good = execute_grasp_trials(true_sdf, true_g, c - [0.045, 0], c + [0.045, 0], gripper, 200, rng)
+    assert good >= 195
+    beside = execute_grasp_trials(true_sdf, true_g, c + [-0.045, 0.02], c + [0.045, 0.02], gripper, 50, rng)
+    assert beside == 0
+    too_wide = execute_grasp_trials(true_sdf, true_g, c - [0.05, 0], c + [0.05, 0], gripper, 50, rng)
+    assert too_wide == 0
+    tilted = np.array([math.sin(math.radians(33)), math.cos(math.radians(33))])  # > arctan γ from the normal
+    assert execute_grasp_trials(true_sdf, true_g, c - 0.045 * tilted, c + 0.045 * tilted, gripper, 50, rng) <= 5

@@ -1,0 +1,98 @@
+"""Sequential convex programming (ℓ1 penalties, trust region, batched OSQP) on smooth toy problems."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from gpis_grasp_ros.core.scp import (
+    REASON_ITERATION_LIMIT,
+    REASON_PENALTY_LIMIT,
+    ScpSettings,
+    scp_minimize,
+)
+
+
+def quadratic(x: np.ndarray):
+    """min (x−2)² + (y−1)²  s.t.  x + y <= 2  →  (1.5, 0.5)."""
+    return (x[:, 0] - 2) ** 2 + (x[:, 1] - 1) ** 2, (x[:, 0] + x[:, 1] - 2)[:, None]
+
+
+def rosenbrock(x: np.ndarray):
+    """Rosenbrock with the linear constraint x + y <= 1.5 (active at the optimum)."""
+    return (1 - x[:, 0]) ** 2 + 100 * (x[:, 1] - x[:, 0] ** 2) ** 2, (x[:, 0] + x[:, 1] - 1.5)[:, None]
+
+
+def circle(x: np.ndarray):
+    """min x + y  s.t.  x² + y² <= 1  →  (−1/√2, −1/√2)."""
+    return x[:, 0] + x[:, 1], (x[:, 0] ** 2 + x[:, 1] ** 2 - 1)[:, None]
+
+
+STARTS = np.array([[0.0, 0.0], [5.0, 5.0], [-3.0, 2.0], [2.0, -4.0]])
+
+
+@pytest.mark.parametrize('quasi_newton', [False, True])
+def test_constrained_quadratic(quasi_newton: bool) -> None:
+    res = scp_minimize(quadratic, STARTS, ScpSettings(quasi_newton=quasi_newton, fd_step=1e-6))
+    np.testing.assert_allclose(res.x, np.tile([1.5, 0.5], (4, 1)), atol=2e-4)
+    assert res.converged.all() and res.feasible.all()
+    assert all(r.startswith('converged') for r in res.reason)
+    assert np.all(res.iterations >= 1) and np.all(res.evaluations > res.iterations)
+    assert res.qp_solves == res.iterations.max()
+
+
+def test_rosenbrock_with_linear_constraint_matches_slsqp() -> None:
+    ref = minimize(lambda z: rosenbrock(z[None])[0][0], [0.0, 0.0], method='SLSQP', tol=1e-12,
+                   constraints=[{'type': 'ineq', 'fun': lambda z: -rosenbrock(z[None])[1][0, 0]}])
+    starts = np.array([[-1.2, 1.0], [0.0, 0.0], [1.0, -1.0]])
+    res = scp_minimize(rosenbrock, starts, ScpSettings(quasi_newton=True, fd_step=1e-7, max_iterations=300))
+    np.testing.assert_allclose(res.x, np.tile(ref.x, (3, 1)), atol=1e-4)
+    assert res.converged.all()
+    # the active constraint holds to tolerance
+    assert np.all(res.constraints <= 1e-4)
+
+
+def test_nonlinear_constraint_from_infeasible_start() -> None:
+    starts = np.array([[2.0, 2.0], [0.0, 0.0], [-1.0, 0.5], [0.3, -1.5]])
+    res = scp_minimize(circle, starts, ScpSettings(quasi_newton=True, fd_step=1e-7))
+    np.testing.assert_allclose(res.x, np.tile([-np.sqrt(0.5)] * 2, (4, 1)), atol=3e-3)
+    assert res.feasible.all()
+    assert res.merit == pytest.approx(res.fun + res.penalty * np.maximum(res.constraints, 0).sum(axis=1))
+
+
+def test_bounds_are_hard_and_limits_reported() -> None:
+    # unconstrained linear objective pushes against the box
+    def lin(x: np.ndarray):
+        return -x[:, 0] - 2 * x[:, 1], np.zeros((x.shape[0], 0))
+
+    res = scp_minimize(lin, np.zeros((2, 2)), ScpSettings(trust_radius_max=0.5), lower=[-1, -1], upper=[1, 0.25])
+    np.testing.assert_allclose(res.x, np.tile([1.0, 0.25], (2, 1)), atol=1e-6)
+    # iteration limit
+    short = scp_minimize(rosenbrock, np.array([[-1.2, 1.0]]), ScpSettings(max_iterations=2))
+    assert short.reason == [REASON_ITERATION_LIMIT] and not short.converged[0]
+    # infeasible problem: g = 1 everywhere → penalty limit
+    def infeasible(x: np.ndarray):
+        return x[:, 0] ** 2, np.ones((x.shape[0], 1))
+
+    bad = scp_minimize(infeasible, np.array([[1.0]]), ScpSettings(penalty_max=1e3))
+    assert bad.reason == [REASON_PENALTY_LIMIT] and not bad.feasible[0] and not bad.converged[0]
+
+
+def test_batched_restarts_match_single_runs_and_central_differences() -> None:
+    st = ScpSettings(quasi_newton=True, fd_step=1e-5, central_differences=True)
+    batch = scp_minimize(quadratic, STARTS, st)
+    for i, x0 in enumerate(STARTS):
+        single = scp_minimize(quadratic, x0[None], st)
+        np.testing.assert_allclose(batch.x[i], single.x[0], atol=1e-4)
+
+
+def test_function_called_in_batches() -> None:
+    calls = []
+
+    def counted(x: np.ndarray):
+        calls.append(x.shape[0])
+        return quadratic(x)
+
+    scp_minimize(counted, STARTS, ScpSettings(fd_step=1e-6))
+    assert calls[0] == 4 and calls[1] == 8  # all starts at once, then all their FD points at once

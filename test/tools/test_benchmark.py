@@ -1,0 +1,130 @@
+"""``gpis-grasp benchmark``: structure, invariants and serial/parallel identity on small settings.
+
+The benchmark runs once serially and once with two spawned workers on objects A and B with
+50 grasp x 50 shape samples, one seed and 5 simulated executions (module-scoped fixtures, about
+15 s in total on 2 cores); the scaling fit is checked on synthetic power laws.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpis_grasp_ros.tools.benchmark import cli, report, scaling
+from gpis_grasp_ros.tools.benchmark import evaluation as ev
+
+ROOT = Path(__file__).resolve().parents[2]
+BAGS = [ROOT / 'bags' / 'A_tape_dispenser.mcap', ROOT / 'bags' / 'B_nail.mcap']
+SMALL = ev.BenchmarkSettings(seeds=1, grasp_samples=50, shape_samples=50, trials=5, blur_samples=200,
+                             com_samples=200)
+
+
+def _without_times(rows: list[dict], drop: tuple[str, ...] = ev.TIME_COLUMNS) -> list[dict]:
+    """Rows without the timing columns, NaN replaced by a marker (NaN != NaN would fail ==)."""
+    def norm(v: object) -> object:
+        return 'nan' if isinstance(v, float) and math.isnan(v) else v
+    return [{k: norm(v) for k, v in r.items() if k not in drop} for r in rows]
+
+
+@pytest.fixture(scope='module')
+def serial() -> ev.BenchmarkResult:
+    return ev.run_benchmark(BAGS, SMALL, workers=1, progress=False)
+
+
+@pytest.fixture(scope='module')
+def parallel() -> ev.BenchmarkResult:
+    return ev.run_benchmark(BAGS, SMALL, workers=2, progress=False)
+
+
+@pytest.fixture(scope='module')
+def written(serial: ev.BenchmarkResult, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp('benchmark')
+    cli.write_outputs(serial, out)
+    return out
+
+
+def test_every_method_plans_a_grasp_with_valid_numbers(serial: ev.BenchmarkResult) -> None:
+    rows = serial.rows
+    assert len(rows) == len(BAGS) * len(ev.METHODS) * SMALL.seeds
+    assert {(r['object'], r['method']) for r in rows} == {(b.stem, m.key) for b in BAGS for m in ev.METHODS}
+    for r in rows:
+        assert r['success'], r
+        assert np.all(np.isfinite([r['jaw1_x'], r['jaw1_y'], r['jaw2_x'], r['jaw2_y']]))
+        assert 0.0 <= r['p_f'] <= 1.0
+        assert 0.0 <= r['p_f_std_error'] <= 0.5 / math.sqrt(SMALL.shape_samples) + 1e-12
+        assert 0 <= r['sim_successes'] <= r['sim_trials'] == SMALL.trials
+        assert r['q_n_status'] in ('ok', 'no_contact', 'start_inside', 'opening_exceeded')
+        assert math.isfinite(r['q_n']) == (r['q_n_status'] == 'ok')
+        assert r['planning_time_s'] > 0
+    for o in serial.objects:
+        assert o.info['com_spread_rms_cells'] >= 0 and o.info['com_spread_p95_cells'] >= 0
+        assert 0 <= o.info['mean_shape_iou'] <= 1
+        assert o.blur.shape == o.geometry.shape and o.outline
+
+
+def test_gp_p_beats_gp_m_on_the_transparent_object(serial: ev.BenchmarkResult) -> None:
+    """Object A: GP-M ignores the unseen dispenser; Monte-Carlo selection must not do worse."""
+    cells = report.aggregate(serial.rows)
+    assert cells[('A_tape_dispenser', 'gp-p')].p_f >= cells[('A_tape_dispenser', 'gp-m')].p_f
+
+
+def test_parallel_run_equals_serial_run(serial: ev.BenchmarkResult, parallel: ev.BenchmarkResult) -> None:
+    assert parallel.workers == 2 and serial.workers == 1
+    assert _without_times(parallel.rows) == _without_times(serial.rows)
+    for a, b in zip(serial.objects, parallel.objects, strict=True):
+        assert np.array_equal(a.blur, b.blur)
+        assert _without_times([a.info], ev.OBJECT_TIME_COLUMNS) == _without_times([b.info], ev.OBJECT_TIME_COLUMNS)
+
+
+def test_output_files(written: Path) -> None:
+    for name in ('table1.md', 'results.csv', 'objects.csv', 'summary.json', 'pf_bars.png', 'runtime.png',
+                 'fig4.png'):
+        assert (written / name).stat().st_size > 0, name
+    for bag in BAGS:
+        assert (written / 'objects' / f'{bag.stem}.png').stat().st_size > 0
+    with open(written / 'results.csv') as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(BAGS) * len(ev.METHODS) * SMALL.seeds
+    # The first table of table1.md (Table I layout) has one row per object.
+    lines = (written / 'table1.md').read_text().splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith('| Object |'))
+    body = []
+    for line in lines[start + 2:]:
+        if not line.startswith('|'):
+            break
+        body.append(line)
+    assert [line.split('|')[1].strip() for line in body] == ['A', 'B']
+    assert '(0.72)' in body[0]  # the paper's GP-M value of object A next to ours
+
+
+def test_progress_bar_reaches_the_total() -> None:
+    stream = io.StringIO()
+    bar = ev.ProgressBar(3, stream=stream)
+    for _ in range(3):
+        bar.advance('x')
+    bar.close()
+    lines = stream.getvalue().strip().splitlines()
+    assert len(lines) == 3 and '3/3' in lines[-1] and 'left ~0:00' in lines[-1]
+
+
+def test_derived_seeds_are_stable_and_distinct() -> None:
+    assert ev.derive_seed('planner', 0, 'A_tape_dispenser') == ev.derive_seed('planner', 0, 'A_tape_dispenser')
+    seeds = {ev.derive_seed('planner', s, o) for s in range(3) for o in ('A', 'B', 'C')}
+    assert len(seeds) == 9
+
+
+@pytest.mark.parametrize('k', [1.0, 2.0, 3.7])
+def test_power_law_fit_recovers_the_exponent(k: float) -> None:
+    sizes = np.array([25, 40, 55, 70, 100], dtype=float)
+    rng = np.random.default_rng(0)
+    c, k_fit = scaling.fit_power_law(sizes, 3e-4 * sizes ** k)
+    assert k_fit == pytest.approx(k, abs=1e-9) and c == pytest.approx(3e-4, rel=1e-9)
+    _, k_noisy = scaling.fit_power_law(sizes, 3e-4 * sizes ** k * np.exp(rng.normal(0, 0.02, sizes.size)))
+    assert k_noisy == pytest.approx(k, abs=0.1)
+    with pytest.raises(ValueError):
+        scaling.fit_power_law([25, 25], [1.0, 2.0])
