@@ -298,30 +298,34 @@ def intrinsics_to_camera_info(f: MessageFactory, fx: float, fy: float, cx: float
 
 # --------------------------------------------------------------------------- grids
 def map_meta_data_to_geometry(info: Any, frame_id: str = '') -> GridGeometry:
-    """``nav_msgs/MapMetaData`` → :class:`GridGeometry` (``z`` = origin.position.z, m).
+    """``nav_msgs/MapMetaData`` → :class:`GridGeometry`: the origin pose (position **and**
+    orientation) is the grid's pose in ``frame_id`` (see :mod:`gpis_grasp_ros.core.grid`).
 
     The float32 ``resolution`` is read back as the shortest decimal with the same float32 value.
-
-    Only axis-aligned grids are supported: a rotated origin raises ValueError.
+    A non-unit or non-finite orientation quaternion raises ValueError.
     """
     q = info.origin.orientation
-    if abs(abs(float(q.w)) - 1.0) > 1e-6 or max(abs(float(q.x)), abs(float(q.y)), abs(float(q.z))) > 1e-6:
-        raise ValueError('grid origin orientation must be the identity (rotated grids are not supported), '
-                         f'got quaternion ({q.x}, {q.y}, {q.z}, {q.w})')
     pos = info.origin.position
     # resolution is float32 on the wire: take the shortest decimal that maps to the same float32,
     # so 0.001 written comes back as 0.001 (not 0.0010000000474974513).
     resolution = float(str(np.float32(info.resolution)))
-    return GridGeometry(float(pos.x), float(pos.y), resolution, int(info.width), int(info.height),
-                        float(pos.z), str(frame_id))
+    quat = np.array([float(q.x), float(q.y), float(q.z), float(q.w)])
+    position = np.array([float(pos.x), float(pos.y), float(pos.z)])
+    if np.allclose(quat, [0.0, 0.0, 0.0, 1.0], atol=1e-12):  # fronto-parallel: exact, no round-off
+        return GridGeometry(position[0], position[1], resolution, int(info.width), int(info.height),
+                            position[2], str(frame_id))
+    return GridGeometry.from_corner_pose(position, quat, resolution, int(info.width), int(info.height),
+                                         str(frame_id))
 
 
 def geometry_to_map_meta_data(f: MessageFactory, geometry: GridGeometry, load_time_ns: int = 0) -> Any:
-    """:class:`GridGeometry` → ``nav_msgs/MapMetaData`` (identity orientation, origin z = geometry.z)."""
+    """:class:`GridGeometry` → ``nav_msgs/MapMetaData`` whose origin is the grid's full pose."""
+    position, quat = geometry.corner_pose()
     origin = f.new('geometry_msgs/msg/Pose',
-                   position=f.new('geometry_msgs/msg/Point', x=float(geometry.origin_x), y=float(geometry.origin_y),
-                                  z=float(geometry.z)),
-                   orientation=f.new('geometry_msgs/msg/Quaternion', x=0.0, y=0.0, z=0.0, w=1.0))
+                   position=f.new('geometry_msgs/msg/Point', x=float(position[0]), y=float(position[1]),
+                                  z=float(position[2])),
+                   orientation=f.new('geometry_msgs/msg/Quaternion', x=float(quat[0]), y=float(quat[1]),
+                                     z=float(quat[2]), w=float(quat[3])))
     return f.new('nav_msgs/msg/MapMetaData', map_load_time=time_msg(f, load_time_ns),
                  resolution=float(geometry.resolution), width=int(geometry.width), height=int(geometry.height),
                  origin=origin)

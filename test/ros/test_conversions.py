@@ -222,9 +222,27 @@ def test_grid_bad_messages_raise_clear_errors():
     with pytest.raises(ValueError, match='has 11 values, expected width 4 \\* height 3 = 12'):
         cv.occupancy_grid_to_numpy(msg)
     msg = cv.numpy_to_occupancy_grid(f, np.zeros(geom.shape, np.int8), geom)
-    msg.info.origin.orientation.z, msg.info.origin.orientation.w = 0.7071, 0.7071
-    with pytest.raises(ValueError, match='rotated grids are not supported'):
+    msg.info.origin.orientation.w = 0.0
+    with pytest.raises(ValueError, match='unit quaternion'):
         cv.occupancy_grid_to_numpy(msg)
+    msg.info.origin.orientation.w = float('nan')
+    with pytest.raises(ValueError, match='unit quaternion'):
+        cv.occupancy_grid_to_numpy(msg)
+
+
+def test_tilted_grid_pose_round_trips_through_messages(flavour):
+    """A grid in a table plane tilted by 50° keeps its full pose through OccupancyGrid and FloatGrid."""
+    f, wire = flavour
+    a = np.deg2rad(50.0)
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    geom = GridGeometry(-0.05, -0.04, 0.004, 25, 25, 0.9, 'cam', tuple(rot.ravel()))
+    occ = np.zeros(geom.shape, np.int8)
+    msg = wire(cv.numpy_to_occupancy_grid(f, occ, geom), 'nav_msgs/msg/OccupancyGrid')
+    _, g2 = cv.occupancy_grid_to_numpy(msg)
+    np.testing.assert_allclose(g2.rotation, geom.rotation, atol=1e-12)
+    np.testing.assert_allclose([g2.origin_x, g2.origin_y, g2.z], [geom.origin_x, geom.origin_y, geom.z], atol=1e-12)
+    corner = [msg.info.origin.position.x, msg.info.origin.position.y, msg.info.origin.position.z]
+    np.testing.assert_allclose(corner, geom.to_sensor(np.array([-0.05, -0.04])), atol=1e-12)
 
 
 def test_geometry_messages_round_trip(flavour):
