@@ -46,10 +46,17 @@ Design decisions (where the paper is silent or ambiguous):
   ``constraint_tol``, is then made exact by shrinking the jaws about their centre. Feasible local
   optima take precedence over infeasible ones when picking the best objective.
 * **GP-D / GP-U (VII-B).** Our reading of "optimizes P_F on the mean SDF with finite differences":
-  the same SCP/finite-difference optimiser from ONE random valid heuristic initial grasp
-  (``n_initial_grasps_baseline``), with only the candidate-set constraints (opening, clearance)
-  — no antipodal constraints and no multi-start, which isolates what the antipodal constraints,
-  the λ penalty and the restarts contribute (and matches their weak P_F in Table I).
+  the same SCP/finite-difference optimiser from N_g = ``n_initial_grasps`` (20) valid heuristic
+  initial grasps, as the paper uses N_g = 20 for GP-G, GP-D and GP-U, with only the
+  candidate-set constraints (opening, clearance) — no antipodal constraints (GP-D: λ = 0; GP-U:
+  the λ penalty). ``'gp-d-single'`` / ``'gp-u-single'`` are extras (not in the paper) that run
+  from ONE initial grasp, to show what the restarts contribute.
+* **Cancellation and progress.** Every planner takes an optional :class:`PlanControl`: its
+  ``should_stop`` is polled after every SCP iteration, after every finished restart and before
+  every Monte-Carlo chunk of about 8k trials (a few ms each on a 25 x 25 grid), and
+  ``on_progress`` gets a :class:`PlanProgress` after each restart (or GP-M candidate chunk, or
+  GP-P halving round). A stopped plan returns ``success=False``, ``message='stopped: <reason>'``
+  and ``stopped=<reason>``.
 * **GP-P adaptive Monte Carlo** (successive halving, cf. adaptive sampling [22]): all K
   candidates are scored on the first ~S/η^(R−1) shape samples, the best 1/η (by P̂_F, ties by
   Q_F on the mean) are scored on more samples, and so on; the last round uses all S samples,
@@ -69,6 +76,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,9 +93,9 @@ from gpis_grasp_ros.core.quality import (
     probability_force_closure,
     torque_scale,
 )
-from gpis_grasp_ros.core.scp import ScpResult, ScpSettings, scp_minimize
+from gpis_grasp_ros.core.scp import ScpProgress, ScpResult, ScpSettings, scp_minimize
 
-METHODS = ('gp-gpis-opt', 'gp-gpis-opt-reranked', 'gp-p', 'gp-m', 'gp-d', 'gp-u')
+METHODS = ('gp-gpis-opt', 'gp-gpis-opt-reranked', 'gp-p', 'gp-m', 'gp-d', 'gp-u', 'gp-d-single', 'gp-u-single')
 ALIASES = {'gp-g': 'gp-gpis-opt', 'gp-g-reranked': 'gp-gpis-opt-reranked'}
 
 
@@ -96,8 +104,7 @@ class PlannerParams:
     """Planner settings. Lengths in metres unless the name says cells."""
 
     gripper: GripperParams = field(default_factory=GripperParams)
-    n_initial_grasps: int = 20  # N_g (GP-GPIS-OPT restarts)
-    n_initial_grasps_baseline: int = 1  # restarts of GP-D / GP-U (see module docstring)
+    n_initial_grasps: int = 20  # N_g (restarts of GP-GPIS-OPT, GP-D and GP-U)
     n_grasp_samples: int = 1000  # K heuristic candidates of GP-M / GP-P
     n_shape_samples: int = 1000  # S shape samples for Monte-Carlo P_F
     uncertainty_penalty: float = 2.0  # λ, per cell² of SDF variance (eq. 4)
@@ -181,6 +188,81 @@ class GraspResult:
     n_candidates: int = 0
     restarts: list[RestartInfo] = field(default_factory=list)
     seed: int | None = None
+    stopped: str = ''  # reason a PlanControl stopped the plan ('' when it ran to the end)
+
+
+@dataclass(frozen=True)
+class PlanProgress:
+    """Progress of one :func:`plan` call, passed to :attr:`PlanControl.on_progress`.
+
+    ``restarts_done``/``restarts_total`` count SCP restarts for the optimising planners and
+    chunks of work for the sampling planners (GP-M: candidate chunks; GP-P: successive-halving
+    rounds). ``best_objective`` the method's criterion of the best finished restart/chunk (eq. 6
+    value, Q_F or P̂_F), ``best_p_f`` its probability of force closure (smoothed P̃_F on the
+    mean for the optimisers, Monte-Carlo P̂_F for GP-P, NaN for GP-M); NaN when not known yet.
+    """
+
+    restarts_done: int
+    restarts_total: int
+    best_objective: float
+    best_p_f: float
+
+
+def _never_stop() -> str | None:
+    return None
+
+
+@dataclass
+class PlanControl:
+    """Cooperative cancellation and progress of one :func:`plan` call.
+
+    ``should_stop`` is polled between SCP iterations and restarts and between Monte-Carlo sample
+    chunks (every few milliseconds on a 25 x 25 grid); a non-empty reason (e.g. ``'timeout'``,
+    ``'cancelled'``, ``'shutting down'``) stops the plan, which then returns
+    ``GraspResult(success=False, message='stopped: <reason>', stopped=<reason>)``.
+    ``on_progress`` is called after each finished restart/chunk.
+    """
+
+    should_stop: Callable[[], str | None] = _never_stop
+    on_progress: Callable[[PlanProgress], None] | None = None
+
+
+class _Stopped(Exception):
+    """Raised at a checkpoint when the PlanControl asks to stop (caught by the planner entry points)."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class _Tracker:
+    """Progress and stop bookkeeping of one plan call (no-op without a PlanControl)."""
+
+    def __init__(self, control: PlanControl | None, total: int = 0) -> None:
+        self.control = control
+        self.total = int(total)
+        self.done = 0
+        self.best_objective = float('nan')
+        self.best_p_f = float('nan')
+
+    def check(self) -> None:
+        """Raise :class:`_Stopped` if the control asks to stop."""
+        if self.control is None:
+            return
+        reason = self.control.should_stop()
+        if reason:
+            raise _Stopped(str(reason))
+
+    def step(self, best_objective: float | None = None, best_p_f: float | None = None) -> None:
+        """One more restart/chunk finished: report progress, then check for a stop."""
+        self.done += 1
+        if best_objective is not None:
+            self.best_objective = float(best_objective)
+        if best_p_f is not None:
+            self.best_p_f = float(best_p_f)
+        if self.control is not None and self.control.on_progress is not None:
+            self.control.on_progress(PlanProgress(self.done, self.total, self.best_objective, self.best_p_f))
+        self.check()
 
 
 class PlanningContext:
@@ -404,7 +486,7 @@ def _empty_result(method: str, message: str, t_start: float, seed: int | None, *
 
 def _finish(ctx: PlanningContext, method: str, jaw1: np.ndarray, jaw2: np.ndarray, objective: float,
             t_start: float, rngs: dict[str, np.random.Generator], seed: int | None, message: str = '',
-            **kw) -> GraspResult:
+            tracker: _Tracker | None = None, **kw) -> GraspResult:
     """Fill a GraspResult: geometry of the grasp, Q_F on the mean, evaluation P_F."""
     planning_time = time.perf_counter() - t_start
     jaw1 = np.asarray(jaw1, dtype=np.float64).reshape(2)
@@ -414,7 +496,8 @@ def _finish(ctx: PlanningContext, method: str, jaw1: np.ndarray, jaw2: np.ndarra
     q = float(ctx.mean_quality(jaw1, jaw2))
     t_eval = time.perf_counter()
     samples = evaluation_samples(ctx, rngs['evaluation'])
-    est = probability_force_closure(jaw1[None], jaw2[None], samples, ctx.gripper, ctx.sigma_g)
+    est = probability_force_closure(jaw1[None], jaw2[None], samples, ctx.gripper, ctx.sigma_g,
+                                    checkpoint=None if tracker is None else tracker.check)
     valid = bool(_valid_on_mean(ctx, jaw1, jaw2))
     # Success: the grasp is executable on the mean shape, or (GP-P) it closes on some shape samples.
     success = valid or bool(est.p[0] > 0)
@@ -444,12 +527,15 @@ def _scp_settings(params: PlannerParams) -> ScpSettings:
 
 def _optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, antipodal: bool,
               rngs: dict[str, np.random.Generator], t_start: float, seed: int | None,
-              rerank: bool = False) -> GraspResult:
+              rerank: bool = False, tracker: _Tracker | None = None) -> GraspResult:
     """Shared body of GP-D, GP-U, GP-GPIS-OPT (and its re-ranked variant)."""
     params = ctx.params
+    tracker = _Tracker(None) if tracker is None else tracker
+    tracker.check()
     j1, j2 = sample_valid_grasps(ctx, n_starts, rngs['candidates'])
     if j1.shape[0] == 0:
         return _empty_result(method, 'no valid initial grasp found on the mean shape', t_start, seed)
+    tracker.total = j1.shape[0]
     g = ctx.geometry
     x0 = np.concatenate([g.to_cell(j1), g.to_cell(j2)], axis=1)
     eps = rngs['perturbations'].standard_normal((params.n_perturbations, 2, 2))
@@ -457,7 +543,8 @@ def _optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, 
     pad = ctx.mean_bank.pad
     lower = np.full(4, -float(pad))
     upper = np.array([g.width - 1 + pad, g.height - 1 + pad] * 2, dtype=np.float64)
-    res: ScpResult = scp_minimize(objective, x0, _scp_settings(params), lower=lower, upper=upper)
+    monitor = _ScpMonitor(objective, tracker, x0.shape[0], params.constraint_tol)
+    res: ScpResult = scp_minimize(objective, x0, _scp_settings(params), lower=lower, upper=upper, monitor=monitor)
     # The opening constraint holds to constraint_tol; make it exact (a grasp wider than w_g is not
     # in the candidate set and would fail every Monte-Carlo trial): shrink about the centre.
     x_opt = res.x.copy()
@@ -479,18 +566,47 @@ def _optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, 
     rank_value = np.where(feasible, value, value - 1e6)
     best = int(np.argmax(rank_value))
     chosen_value = float(value[best])
-    message = '' if feasible[best] else 'no restart satisfied all constraints; returning the best objective'
+    infeasible_note = 'no restart satisfied all constraints; returning the best objective'
+    message = '' if feasible[best] else infeasible_note
     if rerank:
         samples = draw_shape_samples(ctx.posterior, params.n_shape_samples, rngs['selection'], rho=ctx.rho)
-        est = probability_force_closure(o1, o2, samples, ctx.gripper, ctx.sigma_g)
+        est = probability_force_closure(o1, o2, samples, ctx.gripper, ctx.sigma_g, checkpoint=tracker.check)
         for i, info in enumerate(restarts):
             info.p_f = float(est.p[i])
-        best = int(np.lexsort((value, est.p))[-1])
+        # Feasible local optima still take precedence (as in Algorithm 1), then MC P_F, then eq. 6.
+        best = int(np.lexsort((value, est.p, feasible))[-1])
         chosen_value = float(est.p[best])
-        message = ''
-    return _finish(ctx, method, o1[best], o2[best], chosen_value, t_start, rngs, seed, message,
+        message = '' if feasible[best] else infeasible_note
+    return _finish(ctx, method, o1[best], o2[best], chosen_value, t_start, rngs, seed, message, tracker=tracker,
                    iterations=int(res.iterations.sum()), converged=bool(res.converged[best]),
                    feasible=bool(feasible[best]), n_candidates=res.x.shape[0], restarts=restarts)
+
+
+class _ScpMonitor:
+    """Turns SCP iterations into PlanControl progress (one call per finished restart) and stop checks."""
+
+    def __init__(self, objective: MeanGraspObjective, tracker: _Tracker, n: int, tol: float) -> None:
+        self.objective = objective
+        self.tracker = tracker
+        self.tol = tol
+        self.running = np.ones(n, dtype=bool)
+        self.best_rank = -np.inf
+
+    def __call__(self, prog: ScpProgress) -> None:
+        tr = self.tracker
+        finished = np.flatnonzero(self.running & ~prog.active)
+        self.running = prog.active.copy()
+        for i in finished:
+            value = -float(prog.fun[i])
+            rank = value if np.max(prog.constraints[i], initial=-np.inf) <= self.tol else value - 1e6
+            if rank > self.best_rank:
+                self.best_rank = rank
+                pf = float(self.objective.details(prog.x[i:i + 1])['pf_smoothed'][0]) \
+                    if tr.control is not None and tr.control.on_progress is not None else float('nan')
+                tr.step(value, pf)
+            else:
+                tr.step()
+        tr.check()
 
 
 # ------------------------------------------------------------------------------------------
@@ -503,72 +619,125 @@ def _prepare(posterior: GpisPosterior, params: PlannerParams | None, seed: int |
     return PlanningContext(posterior, params), _streams(seed), seed
 
 
-def plan_gp_gpis_opt(posterior: GpisPosterior, params: PlannerParams | None = None, seed: int | None = None,
-                     rerank: bool = False) -> GraspResult:
+def _stoppable(method: str):
+    """Decorator: a planner body ``f(ctx, rngs, seed, t0, tracker)`` → public planner with PlanControl."""
+
+    def wrap(body):
+        def planner(posterior: GpisPosterior, params: PlannerParams | None = None, seed: int | None = None,
+                    control: PlanControl | None = None) -> GraspResult:
+            t0 = time.perf_counter()
+            tracker = _Tracker(control)
+            try:
+                tracker.check()
+                ctx, rngs, seed_used = _prepare(posterior, params, seed)
+                return body(ctx, rngs, seed_used, t0, tracker)
+            except _Stopped as stop:
+                seed_used = (PlannerParams() if params is None else params).seed if seed is None else seed
+                return _empty_result(method, f'stopped: {stop.reason}', t0, seed_used, stopped=stop.reason)
+
+        planner.__name__ = body.__name__.lstrip('_')
+        planner.__qualname__ = planner.__name__
+        planner.__doc__ = body.__doc__
+        return planner
+
+    return wrap
+
+
+@_stoppable('gp-gpis-opt')
+def _plan_gp_gpis_opt(ctx, rngs, seed, t0, tracker) -> GraspResult:
     """GP-GPIS-OPT (Algorithm 1): N_g SCP runs on eq. 6 with the antipodal constraints."""
-    t0 = time.perf_counter()
-    ctx, rngs, seed = _prepare(posterior, params, seed)
-    method = 'gp-gpis-opt-reranked' if rerank else 'gp-gpis-opt'
-    return _optimise(ctx, method, ctx.params.n_initial_grasps, ctx.params.uncertainty_penalty, True, rngs, t0,
-                     seed, rerank=rerank)
+    return _optimise(ctx, 'gp-gpis-opt', ctx.params.n_initial_grasps, ctx.params.uncertainty_penalty, True, rngs,
+                     t0, seed, tracker=tracker)
 
 
-def plan_gp_gpis_opt_reranked(posterior: GpisPosterior, params: PlannerParams | None = None,
-                              seed: int | None = None) -> GraspResult:
+@_stoppable('gp-gpis-opt-reranked')
+def _plan_gp_gpis_opt_reranked(ctx, rngs, seed, t0, tracker) -> GraspResult:
     """GP-GPIS-OPT whose N_g local optima are re-scored by Monte-Carlo P_F (beyond the paper)."""
-    return plan_gp_gpis_opt(posterior, params, seed, rerank=True)
+    return _optimise(ctx, 'gp-gpis-opt-reranked', ctx.params.n_initial_grasps, ctx.params.uncertainty_penalty, True,
+                     rngs, t0, seed, rerank=True, tracker=tracker)
 
 
-def plan_gp_d(posterior: GpisPosterior, params: PlannerParams | None = None, seed: int | None = None) -> GraspResult:
-    """GP-D: maximise P̃_F on the mean SDF by finite differences from one initial grasp (λ = 0)."""
-    t0 = time.perf_counter()
-    ctx, rngs, seed = _prepare(posterior, params, seed)
-    return _optimise(ctx, 'gp-d', ctx.params.n_initial_grasps_baseline, 0.0, False, rngs, t0, seed)
+@_stoppable('gp-d')
+def _plan_gp_d(ctx, rngs, seed, t0, tracker) -> GraspResult:
+    """GP-D: maximise P̃_F on the mean SDF by finite differences from N_g initial grasps (λ = 0)."""
+    return _optimise(ctx, 'gp-d', ctx.params.n_initial_grasps, 0.0, False, rngs, t0, seed, tracker=tracker)
 
 
-def plan_gp_u(posterior: GpisPosterior, params: PlannerParams | None = None, seed: int | None = None) -> GraspResult:
-    """GP-U: GP-D plus the uncertainty penalty λ (eq. 4)."""
-    t0 = time.perf_counter()
-    ctx, rngs, seed = _prepare(posterior, params, seed)
-    return _optimise(ctx, 'gp-u', ctx.params.n_initial_grasps_baseline, ctx.params.uncertainty_penalty, False,
-                     rngs, t0, seed)
+@_stoppable('gp-u')
+def _plan_gp_u(ctx, rngs, seed, t0, tracker) -> GraspResult:
+    """GP-U: GP-D plus the uncertainty penalty λ (eq. 4), N_g initial grasps."""
+    return _optimise(ctx, 'gp-u', ctx.params.n_initial_grasps, ctx.params.uncertainty_penalty, False, rngs, t0,
+                     seed, tracker=tracker)
 
 
-def plan_gp_m(posterior: GpisPosterior, params: PlannerParams | None = None, seed: int | None = None) -> GraspResult:
+@_stoppable('gp-d-single')
+def _plan_gp_d_single(ctx, rngs, seed, t0, tracker) -> GraspResult:
+    """GP-D from ONE initial grasp (extra, not in the paper: isolates what the restarts contribute)."""
+    return _optimise(ctx, 'gp-d-single', 1, 0.0, False, rngs, t0, seed, tracker=tracker)
+
+
+@_stoppable('gp-u-single')
+def _plan_gp_u_single(ctx, rngs, seed, t0, tracker) -> GraspResult:
+    """GP-U from ONE initial grasp (extra, not in the paper)."""
+    return _optimise(ctx, 'gp-u-single', 1, ctx.params.uncertainty_penalty, False, rngs, t0, seed, tracker=tracker)
+
+
+#: Candidates per progress chunk of GP-M.
+GP_M_CHUNK = 250
+
+
+@_stoppable('gp-m')
+def _plan_gp_m(ctx, rngs, seed, t0, tracker) -> GraspResult:
     """GP-M: the heuristic candidate with the highest Q_F on the mean SDF."""
-    t0 = time.perf_counter()
-    ctx, rngs, seed = _prepare(posterior, params, seed)
     j1, j2 = sample_heuristic_grasps(ctx, ctx.params.n_grasp_samples, rngs['candidates'])
     if j1.shape[0] == 0:
         return _empty_result('gp-m', 'the mean shape has no surface on the grid', t0, seed)
-    q = ctx.mean_quality(j1, j2)
+    starts = range(0, j1.shape[0], GP_M_CHUNK)
+    tracker.total = len(starts)
+    q = np.empty(j1.shape[0])
+    for s0 in starts:
+        q[s0:s0 + GP_M_CHUNK] = ctx.mean_quality(j1[s0:s0 + GP_M_CHUNK], j2[s0:s0 + GP_M_CHUNK])
+        tracker.step(float(np.max(q[:s0 + GP_M_CHUNK])))
     best = int(np.argmax(q))
     if not np.isfinite(q[best]):
         return _empty_result('gp-m', 'no heuristic candidate is valid on the mean shape', t0, seed,
                              n_candidates=j1.shape[0])
-    return _finish(ctx, 'gp-m', j1[best], j2[best], float(q[best]), t0, rngs, seed, n_candidates=j1.shape[0])
+    return _finish(ctx, 'gp-m', j1[best], j2[best], float(q[best]), t0, rngs, seed, tracker=tracker,
+                   n_candidates=j1.shape[0])
 
 
-def plan_gp_p(posterior: GpisPosterior, params: PlannerParams | None = None, seed: int | None = None) -> GraspResult:
+@_stoppable('gp-p')
+def _plan_gp_p(ctx, rngs, seed, t0, tracker) -> GraspResult:
     """GP-P: the heuristic candidate with the highest Monte-Carlo P_F (K candidates × S shapes)."""
-    t0 = time.perf_counter()
-    ctx, rngs, seed = _prepare(posterior, params, seed)
     p = ctx.params
     j1, j2 = sample_heuristic_grasps(ctx, p.n_grasp_samples, rngs['candidates'])
     if j1.shape[0] == 0:
         return _empty_result('gp-p', 'the mean shape has no surface on the grid', t0, seed)
-    samples = draw_shape_samples(posterior, p.n_shape_samples, rngs['selection'], rho=ctx.rho)
+    samples = draw_shape_samples(ctx.posterior, p.n_shape_samples, rngs['selection'], rho=ctx.rho)
+    tracker.check()
     tiebreak = ctx.mean_quality(j1, j2)
-    best, p_hat = select_by_monte_carlo(ctx, j1, j2, samples, tiebreak)
-    return _finish(ctx, 'gp-p', j1[best], j2[best], p_hat, t0, rngs, seed, n_candidates=j1.shape[0])
+    best, p_hat = select_by_monte_carlo(ctx, j1, j2, samples, tiebreak, tracker=tracker)
+    return _finish(ctx, 'gp-p', j1[best], j2[best], p_hat, t0, rngs, seed, tracker=tracker, n_candidates=j1.shape[0])
+
+
+plan_gp_gpis_opt = _plan_gp_gpis_opt
+plan_gp_gpis_opt_reranked = _plan_gp_gpis_opt_reranked
+plan_gp_d = _plan_gp_d
+plan_gp_u = _plan_gp_u
+plan_gp_d_single = _plan_gp_d_single
+plan_gp_u_single = _plan_gp_u_single
+plan_gp_m = _plan_gp_m
+plan_gp_p = _plan_gp_p
 
 
 def select_by_monte_carlo(ctx: PlanningContext, jaw1: np.ndarray, jaw2: np.ndarray, samples: ShapeSamples,
-                          tiebreak: np.ndarray) -> tuple[int, float]:
+                          tiebreak: np.ndarray, tracker: _Tracker | None = None) -> tuple[int, float]:
     """Index of the candidate with the highest Monte-Carlo P_F, and that P̂_F (full sample set).
 
     Successive halving when ``gp_p_adaptive`` (see the module docstring), else brute force.
+    ``tracker`` (internal) gets one progress step per round and a stop check per sample chunk.
     """
+    tracker = _Tracker(None) if tracker is None else tracker
     p = ctx.params
     n_s = samples.n
     k = jaw1.shape[0]
@@ -581,11 +750,14 @@ def select_by_monte_carlo(ctx: PlanningContext, jaw1: np.ndarray, jaw2: np.ndarr
     alive = np.arange(k)
     succ = np.zeros(k, dtype=np.int64)
     used = 0
+    tracker.total = rounds
     for r in range(rounds):
         n_r = n_s if r == rounds - 1 else max(1, math.ceil(n_s / eta ** (rounds - 1 - r)))
         succ[alive] += force_closure_successes(jaw1[alive], jaw2[alive], samples, ctx.gripper, ctx.sigma_g,
-                                               start=used, stop=n_r)
+                                               start=used, stop=n_r, checkpoint=tracker.check)
         used = n_r
+        lead = float(succ[alive].max(initial=0) / max(n_r, 1))
+        tracker.step(lead, lead)
         if r < rounds - 1:
             keep = max(1, math.ceil(alive.size / eta))
             order = np.lexsort((-tiebreak[alive], -succ[alive]))
@@ -602,6 +774,8 @@ _PLANNERS = {
     'gp-m': plan_gp_m,
     'gp-d': plan_gp_d,
     'gp-u': plan_gp_u,
+    'gp-d-single': plan_gp_d_single,
+    'gp-u-single': plan_gp_u_single,
 }
 
 
@@ -616,9 +790,13 @@ def canonical_method(method: str) -> str:
 
 
 def plan(method: str, posterior: GpisPosterior, params: PlannerParams | None = None,
-         seed: int | None = None) -> GraspResult:
-    """Plan a grasp with the named method (see :data:`METHODS`; 'gp-g' is an alias of 'gp-gpis-opt')."""
-    return _PLANNERS[canonical_method(method)](posterior, params, seed)
+         seed: int | None = None, control: PlanControl | None = None) -> GraspResult:
+    """Plan a grasp with the named method (see :data:`METHODS`; 'gp-g' is an alias of 'gp-gpis-opt').
+
+    ``control`` (optional) makes the plan cooperatively cancellable and reports progress (see
+    :class:`PlanControl`); ``None`` runs to the end without callbacks.
+    """
+    return _PLANNERS[canonical_method(method)](posterior, params, seed, control)
 
 
 def execute_grasp_trials(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw1: np.ndarray, jaw2: np.ndarray,
@@ -650,8 +828,9 @@ def execute_grasp_trials(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw1
 
 
 __all__ = [
-    'METHODS', 'GraspResult', 'MeanGraspObjective', 'PlannerParams', 'PlanningContext', 'RestartInfo',
-    'canonical_method', 'evaluation_samples', 'execute_grasp_trials', 'mean_surface_points', 'plan', 'plan_gp_d',
-    'plan_gp_gpis_opt', 'plan_gp_gpis_opt_reranked', 'plan_gp_m', 'plan_gp_p', 'plan_gp_u',
+    'METHODS', 'GraspResult', 'MeanGraspObjective', 'PlanControl', 'PlanProgress', 'PlannerParams', 'PlanningContext',
+    'RestartInfo', 'canonical_method', 'evaluation_samples', 'execute_grasp_trials', 'mean_surface_points', 'plan',
+    'plan_gp_d', 'plan_gp_d_single', 'plan_gp_gpis_opt', 'plan_gp_gpis_opt_reranked', 'plan_gp_m', 'plan_gp_p',
+    'plan_gp_u', 'plan_gp_u_single',
     'sample_heuristic_grasps', 'sample_valid_grasps', 'select_by_monte_carlo',
 ]

@@ -40,6 +40,7 @@ one sample's interpolation coefficients from cache.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,8 +179,13 @@ class PfEstimate:
 
 
 def force_closure_successes(jaw1: np.ndarray, jaw2: np.ndarray, samples: ShapeSamples, gripper: GripperParams,
-                            sigma_g: float, start: int = 0, stop: int | None = None) -> np.ndarray:
-    """Number of force-closure trials (G,) of grasps ``(G, 2)`` over samples ``start:stop``."""
+                            sigma_g: float, start: int = 0, stop: int | None = None,
+                            checkpoint: Callable[[], None] | None = None) -> np.ndarray:
+    """Number of force-closure trials (G,) of grasps ``(G, 2)`` over samples ``start:stop``.
+
+    ``checkpoint`` is called before every chunk of about ``MAX_TRIALS_PER_CHUNK`` trials; it may
+    raise to abort (cooperative cancellation of a plan).
+    """
     jaw1 = np.atleast_2d(np.asarray(jaw1, dtype=np.float64))
     jaw2 = np.atleast_2d(np.asarray(jaw2, dtype=np.float64))
     stop = samples.n if stop is None else min(stop, samples.n)
@@ -198,6 +204,8 @@ def force_closure_successes(jaw1: np.ndarray, jaw2: np.ndarray, samples: ShapeSa
     chunk = max(1, MAX_TRIALS_PER_CHUNK // rows.size)
     counts = np.zeros(rows.size, dtype=np.int64)
     for s0 in range(start, stop, chunk):
+        if checkpoint is not None:
+            checkpoint()
         s1 = min(s0 + chunk, stop)
         eps = samples.eps[s0:s1, None]  # (s, 1, 2, 2)
         g1, g2 = perturb_grasps(g1n[None], g2n[None], eps, sigma_g)
@@ -211,11 +219,15 @@ def force_closure_successes(jaw1: np.ndarray, jaw2: np.ndarray, samples: ShapeSa
 
 
 def probability_force_closure(jaw1: np.ndarray, jaw2: np.ndarray, samples: ShapeSamples, gripper: GripperParams,
-                              sigma_g: float, start: int = 0, stop: int | None = None) -> PfEstimate:
-    """Monte-Carlo P_F (eq. 3) and its standard error for grasps ``(G, 2)`` (m) over samples ``start:stop``."""
+                              sigma_g: float, start: int = 0, stop: int | None = None,
+                              checkpoint: Callable[[], None] | None = None) -> PfEstimate:
+    """Monte-Carlo P_F (eq. 3) and its standard error for grasps ``(G, 2)`` (m) over samples ``start:stop``.
+
+    ``checkpoint``: see :func:`force_closure_successes`.
+    """
     stop = samples.n if stop is None else min(stop, samples.n)
     n = max(stop - start, 0)
-    succ = force_closure_successes(jaw1, jaw2, samples, gripper, sigma_g, start, stop)
+    succ = force_closure_successes(jaw1, jaw2, samples, gripper, sigma_g, start, stop, checkpoint)
     p = succ / max(n, 1)
     se = np.sqrt(p * (1.0 - p) / max(n, 1))
     return PfEstimate(p=p, std_error=se, successes=succ, n=n)

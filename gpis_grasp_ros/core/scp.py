@@ -200,13 +200,27 @@ def _merit(f: np.ndarray, g: np.ndarray, mu: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(m), m, np.inf)
 
 
+@dataclass(frozen=True)
+class ScpProgress:
+    """State passed to the ``monitor`` of :func:`scp_minimize` after every iteration (read-only views)."""
+
+    iteration: int  # QP solves so far
+    active: np.ndarray  # (R,) restarts still running
+    x: np.ndarray  # (R, n) current points
+    fun: np.ndarray  # (R,) objective values
+    constraints: np.ndarray  # (R, m)
+
+
 def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | None = None,
                  lower: np.ndarray | None = None, upper: np.ndarray | None = None,
-                 record_history: bool = False) -> ScpResult:
+                 record_history: bool = False,
+                 monitor: Callable[[ScpProgress], None] | None = None) -> ScpResult:
     """Run SCP from each row of ``x0`` (R, n); see the module docstring.
 
     ``fun`` maps a batch of points (B, n) to objective values (B,) and constraint values (B, m)
     (``g <= 0`` is feasible). ``lower``/``upper`` are hard box bounds on x (kept exactly).
+    ``monitor`` is called after every iteration with an :class:`ScpProgress`; it may raise to
+    abort the run (cooperative cancellation: the exception propagates to the caller).
     """
     st = ScpSettings() if settings is None else settings
     x = np.array(x0, dtype=np.float64, ndmin=2)
@@ -325,6 +339,9 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
         for i in np.flatnonzero(over):
             active[i] = False
             reason[i] = REASON_ITERATION_LIMIT
+        if monitor is not None:
+            monitor(ScpProgress(iteration=qp_solves, active=active.copy(), x=x.copy(), fun=f.copy(),
+                                constraints=g.copy()))
 
     feasible = np.max(g, axis=1, initial=-np.inf) <= st.constraint_tol
     return ScpResult(x=x, fun=f, constraints=g, penalty=mu, iterations=iterations, evaluations=evals,

@@ -102,11 +102,11 @@ def test_same_seed_same_grasp_and_common_evaluation() -> None:
     np.testing.assert_array_equal(plan('gp-m', POST, seeded).jaw1, plan('gp-m', POST, params, seed=3).jaw1)
 
 
-def test_gp_d_and_gp_u_single_start_optimisers() -> None:
-    params = PlannerParams(n_shape_samples=200)
-    for method in ('gp-d', 'gp-u'):
+def test_gp_d_and_gp_u_multi_start_and_single_start_extras() -> None:
+    params = PlannerParams(n_shape_samples=200, n_initial_grasps=8)
+    for method, starts in (('gp-d', 8), ('gp-u', 8), ('gp-d-single', 1), ('gp-u-single', 1)):
         r = plan(method, POST, params, seed=5)
-        assert r.method == method and len(r.restarts) == params.n_initial_grasps_baseline
+        assert r.method == method and len(r.restarts) == starts
         assert r.iterations >= 1 and np.isfinite(r.objective)
         assert r.width <= params.gripper.max_opening + 1e-12
     # on a certain rectangle the local optimiser reaches force closure
