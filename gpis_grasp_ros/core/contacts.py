@@ -42,7 +42,8 @@ Choices where the paper is silent (documented here, relied on by :mod:`quality` 
   :class:`SdfBank` defaults to central finite differences of each stored grid.
 * **Degenerate grasps** are flagged, never silently "repaired": ``no_contact`` (no zero crossing
   on any line), ``start_inside`` (a sample of a jaw face already has ``f <= 0``: the jaw would
-  land on the object) and ``opening_exceeded`` (commanded opening ``‖g2 − g1‖ > w_g``).
+  land on the object), ``no_normal`` (the SDF gradient vanishes at a contact, so there is no
+  normal; its normal is NaN) and ``opening_exceeded`` (commanded opening ``‖g2 − g1‖ > w_g``).
   ``valid`` is the conjunction of their negations. The opening check applies to the *commanded*
   jaws passed in; Monte-Carlo code checks the nominal grasp once and calls with
   ``check_opening=False`` for the perturbed jaws, because positioning noise is an execution
@@ -69,6 +70,10 @@ from gpis_grasp_ros.core.grid import GridGeometry
 #: Interpolated points per chunk in :func:`find_contacts`: small enough for the temporaries to stay in
 #: cache (about 2x faster than large chunks), large enough to amortise the Python overhead.
 MAX_POINTS_PER_CHUNK = 1 << 16
+
+#: An SDF gradient norm (dimensionless; 1 for an exact SDF) at or below this defines no normal:
+#: the contact is flagged ``no_normal`` (invalid) instead of being given an arbitrary direction.
+MIN_GRADIENT_NORM = 1e-6
 
 
 @dataclass(frozen=True)
@@ -361,10 +366,11 @@ class SdfBank:
         return out
 
     def normals_at(self, xy: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
-        """Unit outward normals ``(..., 2)`` (normalised gradient); zero where the gradient vanishes."""
+        """Unit outward normals ``(..., 2)`` (normalised gradient); zero where the gradient vanishes
+        (‖∇f‖ <= :data:`MIN_GRADIENT_NORM`)."""
         grad = self.gradients_at(xy, index)
         norm = np.sqrt(grad[..., 0] ** 2 + grad[..., 1] ** 2)[..., None]
-        ok = norm > 1e-12
+        ok = norm > MIN_GRADIENT_NORM
         grad /= np.where(ok, norm, 1.0)
         grad *= ok
         return grad
@@ -394,7 +400,8 @@ class Contacts:
 
     ``c1, c2`` contact points (m) and ``n1, n2`` unit outward normals, NaN where no contact;
     ``width`` jaw separation ‖ĝ2 − ĝ1‖ (m); ``clearance1, clearance2`` the smallest SDF value (m)
-    over each jaw face before closing (negative: the jaw starts inside the object).
+    over each jaw face before closing (negative: the jaw starts inside the object);
+    ``no_normal`` a contact exists but the SDF gradient vanishes there (no defined normal, NaN n).
     """
 
     c1: np.ndarray
@@ -408,6 +415,7 @@ class Contacts:
     width: np.ndarray
     clearance1: np.ndarray
     clearance2: np.ndarray
+    no_normal: np.ndarray | None = None
 
 
 def perturb_grasps(jaw1: np.ndarray, jaw2: np.ndarray, eps: np.ndarray,
@@ -469,11 +477,11 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     # Outward normals of the SDF each trial closed on, at both contacts at once.
     cm = g.to_metric(c)  # (2, T, 2)
     normals = bank.normals_at(cm, None if idx is None else idx[None, :])
-    # A vanishing gradient (flat SDF) falls back to facing the jaw that made the contact.
+    # A vanishing gradient (flat SDF) defines no normal: the contact is invalid (never a made-up
+    # direction, which would look perfectly antipodal).
     flat = ~np.any(normals != 0, axis=2)
-    if flat.any():
-        facing = np.stack([-unit, unit])
-        normals[flat] = facing[flat]
+    no_normal = flat.any(axis=0) & ~no_contact
+    normals[flat] = np.nan
     cm[:, no_contact] = np.nan
     normals[:, no_contact] = np.nan
 
@@ -482,13 +490,13 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
         opening = width > gripper.max_opening * (1.0 + 1e-9) + 1e-12
     else:
         opening = np.zeros(t_total, dtype=bool)
-    valid = ~(no_contact | inside | opening)
+    valid = ~(no_contact | inside | opening | no_normal)
     shape2 = lead + (2,)
     return Contacts(
         c1=cm[0].reshape(shape2), c2=cm[1].reshape(shape2), n1=normals[0].reshape(shape2),
         n2=normals[1].reshape(shape2), valid=valid.reshape(lead), no_contact=no_contact.reshape(lead),
         start_inside=inside.reshape(lead), opening_exceeded=opening.reshape(lead), width=width.reshape(lead),
-        clearance1=clear[0].reshape(lead), clearance2=clear[1].reshape(lead),
+        clearance1=clear[0].reshape(lead), clearance2=clear[1].reshape(lead), no_normal=no_normal.reshape(lead),
     )
 
 
@@ -586,6 +594,9 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
     tau_min = _over_lines(np.minimum, tau)[..., None]
     tau_min = np.where(np.isfinite(tau_min), tau_min, 0.0)
     weight = np.clip(1.0 - (tau - tau_min) / patch_tol, 0.0, 1.0)
+    if n_lines > 1:  # trapezoid rule across the face: the edge lines stand for half a spacing
+        weight[..., 0] *= 0.5
+        weight[..., -1] *= 0.5
     total = _over_lines(np.add, weight)
     total = np.where(total > 0, total, 1.0)
     o = _over_lines(np.add, weight * offsets) / total  # (side, T)

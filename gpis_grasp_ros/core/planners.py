@@ -25,14 +25,23 @@ Design decisions (where the paper is silent or ambiguous):
   trials count 0). Contacts move continuously with the jaws (bilinear SDF, continuous contact
   patch), so P̃_F is smooth enough for finite differences. The smoothing scale 0.02 is ~6 % of the
   Q_F of an ideal antipodal grasp (γ/sqrt(2 + γ²) = 0.33 for γ = 0.5).
-* **Constraints (eq. 5/6)**, evaluated at the unperturbed grasp on the mean shape, with
-  ``v̂ = (g1 − g2)/‖g1 − g2‖``: ``‖n1 + n2‖² <= α``, ``n1ᵀv̂ >= β``, ``−n2ᵀv̂ >= β``. The paper's
-  ``β‖v‖²`` mixes units (n is unit, v is a length); with unit normals the meaningful form is
-  ``n1ᵀv >= β‖v‖``, i.e. the angle between each normal and the closing axis is at most arctan γ,
-  which is what β = cos(arctan γ) encodes. Two more constraints make the grasp a member of the
-  candidate set 𝒢 and physically executable: the opening ``‖g1 − g2‖ <= w_g`` and jaw clearance
-  (both jaw faces start in free space of the mean shape, SDF >= 0). A grasp with no contact on
-  the mean gets the worst value of each antipodal constraint.
+* **Constraints (eq. 5/6)**, evaluated at the unperturbed grasp on the mean shape, on the
+  *contact line* ``v̂ = (c1 − c2)/‖c1 − c2‖``: ``‖n1 + n2‖² <= α``, ``n1ᵀv̂ >= β``,
+  ``−n2ᵀv̂ >= β``. Eq. 5 writes v = ĝ1 − ĝ2, which for point contacts on the approach line is the
+  contact line; with the jaw-patch contact model (:mod:`contacts`) the contacts lie off the jaw
+  axis (up to ~25° on the shipped bags), and the guarantee "β = cos(arctan γ) ⇒ force closure"
+  (Nguyen: the line through the contacts inside both friction cones) holds only for the contact
+  line, so that is what is constrained. The paper's ``β‖v‖²`` mixes units (n is unit, v is a
+  length); with unit normals the meaningful form is ``n1ᵀv >= β‖v‖``, i.e. the angle between each
+  normal and the contact line is at most arctan γ. β is tightened by 2·``constraint_tol`` so a
+  grasp feasible to ``constraint_tol`` still has both angles strictly inside the friction cone:
+  every *feasible* local optimum is in force closure on the mean shape (Q_F > 0; property test
+  over all shipped bags in ``test/core/test_antipodal_guarantee.py``). Two more constraints
+  make the grasp a member of the candidate set 𝒢 and physically executable: the opening
+  ``‖g1 − g2‖ <= w_g`` and jaw clearance (both jaw faces start in free space of the mean shape,
+  SDF >= 0). A grasp with no valid contact on the mean (no contact, jaw inside, coincident
+  contacts or a vanishing SDF gradient at a contact) gets the worst value of each antipodal
+  constraint.
 * **α = 0.5.** With ‖n1‖ = ‖n2‖ = 1, ‖n1 + n2‖² = 4 sin²(φ/2) where φ is the angle between n1 and
   −n2. The β constraints alone allow φ up to 2 arctan γ = 53° (both normals tilted to the limit in
   opposite senses — a wedge that friction only barely holds); α = 0.5 caps φ at 41°, so the α
@@ -449,11 +458,15 @@ class MeanGraspObjective:
         cons = [(width - ctx.gripper.max_opening) / res, -con.clearance1[:, 0] / res, -con.clearance2[:, 0] / res]
         if self.antipodal:
             n1, n2 = con.n1[:, 0], con.n2[:, 0]
-            v = (j1 - j2) / np.maximum(width, 1e-12)[:, None]
-            beta, alpha = ctx.params.beta, ctx.params.antipodal_alpha
-            c_alpha = np.where(ok, np.sum((n1 + n2) ** 2, axis=1) - alpha, 4.0 - alpha)
-            c_b1 = np.where(ok, beta - np.sum(n1 * v, axis=1), 1.0 + beta)
-            c_b2 = np.where(ok, beta + np.sum(n2 * v, axis=1), 1.0 + beta)
+            # Eq. 5 on the contact line v = (c1 − c2)/‖c1 − c2‖ (see the module docstring).
+            line = con.c1[:, 0] - con.c2[:, 0]
+            dist = np.hypot(line[:, 0], line[:, 1])
+            has_line = con.valid[:, 0] & (dist > 1e-9 * res)
+            v = line / np.where(has_line, dist, 1.0)[:, None]
+            beta, alpha = ctx.params.beta + 2.0 * ctx.params.constraint_tol, ctx.params.antipodal_alpha
+            c_alpha = np.where(has_line, np.sum((n1 + n2) ** 2, axis=1) - alpha, 4.0 - alpha)
+            c_b1 = np.where(has_line, beta - np.sum(n1 * v, axis=1), 1.0 + beta)
+            c_b2 = np.where(has_line, beta + np.sum(n2 * v, axis=1), 1.0 + beta)
             cons += [c_alpha, c_b1, c_b2]
         cons = np.stack(cons, axis=1)
         cons = np.where(np.isfinite(cons), cons, 10.0)

@@ -167,3 +167,21 @@ def test_perturbation_model() -> None:
     d = p2 - p1 - (g2 - g1)
     np.testing.assert_allclose(d.mean(axis=0), 0.0, atol=3e-5)
     np.testing.assert_allclose(np.cov(d.T), 0.002 ** 2 * np.eye(2), atol=2e-7)
+
+
+def test_vanishing_gradient_gives_an_invalid_contact_not_an_antipodal_normal() -> None:
+    """A contact where the SDF gradient vanishes has no normal: flagged ``no_normal``, NaN n, invalid."""
+    sdf = rectangle_sdf(G, tuple(CENTRE), (0.015, 0.01))
+    zero = np.zeros(G.shape + (2,))
+    bank = SdfBank(sdf, G, gradients=zero)  # e.g. a posterior whose gradient is flat
+    con = find_contacts(bank, CENTRE - [0.045, 0], CENTRE + [0.045, 0], GripperParams())
+    assert not con.valid and con.no_normal and not con.no_contact
+    assert np.all(np.isnan(con.n1)) and np.all(np.isnan(con.n2))
+    assert np.all(np.isfinite(con.c1))  # the contact point itself is known
+    # a gradient vanishing only at jaw 2's side invalidates the grasp too
+    grad = np.stack(np.gradient(sdf, RES, axis=(1, 0)), axis=-1)
+    grad[:, 13:] = 0.0
+    con = find_contacts(SdfBank(sdf, G, gradients=grad), CENTRE - [0.045, 0], CENTRE + [0.045, 0], GripperParams())
+    assert not con.valid and con.no_normal and np.all(np.isfinite(con.n1)) and np.all(np.isnan(con.n2))
+    ok = find_contacts(SdfBank(sdf, G), CENTRE - [0.045, 0], CENTRE + [0.045, 0], GripperParams())
+    assert ok.valid and not ok.no_normal

@@ -170,3 +170,12 @@ def test_execute_grasp_trials_on_a_finer_true_grid() -> None:
     assert too_wide == 0
     tilted = np.array([math.sin(math.radians(33)), math.cos(math.radians(33))])  # > arctan γ from the normal
     assert execute_grasp_trials(true_sdf, true_g, c - 0.045 * tilted, c + 0.045 * tilted, gripper, 50, rng) <= 5
+
+
+def test_no_feasible_restart_is_reported_by_both_gp_g_variants() -> None:
+    """β > 1 cannot be met: GP-G and its re-ranked variant say so (and do not claim feasibility)."""
+    params = PlannerParams(n_shape_samples=100, n_initial_grasps=4, antipodal_beta=1.5, max_scp_iterations=20)
+    for method in ('gp-gpis-opt', 'gp-gpis-opt-reranked'):
+        r = plan(method, POST, params, seed=2)
+        assert not r.feasible and not any(x.feasible for x in r.restarts)
+        assert 'no restart satisfied all constraints' in r.message
