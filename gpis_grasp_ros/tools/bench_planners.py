@@ -98,8 +98,9 @@ def _contacts_loop(sdf: np.ndarray, gx: np.ndarray, gy: np.ndarray, g: GridGeome
     n_seg = max(math.ceil(length / gripper.march_step_cells - 1e-9), 1)
     dt = length / n_seg
     offsets = gripper.face_offsets(g) / g.resolution
-    sides = ([], [])  # per side: list of (offset, t) of the crossing on each line
-    for o in offsets:
+    sides = ([], [])  # per side: list of (offset, t, quadrature weight) of the crossing on each line
+    for k_line, o in enumerate(offsets):
+        end_line = len(offsets) > 1 and k_line in (0, len(offsets) - 1)
         ox, oy = a[0] + o * px, a[1] + o * py
         f = [_sample_value(sdf, g, ox + k * dt * ux, oy + k * dt * uy) for k in range(n_seg + 1)]
         if f[0] <= 0 or f[-1] <= 0:
@@ -117,15 +118,15 @@ def _contacts_loop(sdf: np.ndarray, gx: np.ndarray, gy: np.ndarray, g: GridGeome
             else:
                 ta, fa, tb, fb = t_mid, f_mid, t_in, f_in
             w = fa / (fa - fb) if fa - fb > 0 else 0.5
-            sides[side].append((o, ta + min(max(w, 0.0), 1.0) * (tb - ta)))
+            sides[side].append((o, ta + min(max(w, 0.0), 1.0) * (tb - ta), 0.5 if end_line else 1.0))
     if not sides[0]:
         return None
     out = []
     for side, sign in ((0, 1.0), (1, -1.0)):
-        first = min(sign * t for _, t in sides[side])
+        first = min(sign * t for _, t, _ in sides[side])
         wsum = osum = tsum = 0.0
-        for o, t in sides[side]:
-            wt = min(max(1.0 - (sign * t - first) / gripper.patch_cells(g), 0.0), 1.0)
+        for o, t, quad in sides[side]:
+            wt = quad * min(max(1.0 - (sign * t - first) / gripper.patch_cells(g), 0.0), 1.0)
             wsum += wt
             osum += wt * o
             tsum += wt * t
@@ -135,8 +136,9 @@ def _contacts_loop(sdf: np.ndarray, gx: np.ndarray, gy: np.ndarray, g: GridGeome
         nx = _bilinear_clamped(gx, cu, cv)
         ny = _bilinear_clamped(gy, cu, cv)
         norm = math.hypot(nx, ny)
-        n = np.array([nx / norm, ny / norm]) if norm > 1e-12 else np.array([-ux, -uy]) * sign
-        out.append((c, n))
+        if norm <= 1e-6:
+            return None  # no normal where the gradient vanishes: invalid contact
+        out.append((c, np.array([nx / norm, ny / norm])))
     return out
 
 
