@@ -16,6 +16,14 @@ H     marker              white barrel; specular label band mid-body; dark cap
 
 ``gpis-grasp make-bags [--out DIR] [--only A,B]`` regenerates the bags (deterministic: the same
 code and seeds give byte-identical files) and writes each outline to ``DIR/objects/<name>.csv``.
+
+**Head-camera set** (``gpis-grasp make-bags --head``, written to ``DIR/head/``): the same eight
+objects seen the way the paper's PR2 sees them, by a Carmine on the robot's head about 0.9 m from
+the object and tilted 45-55 degrees from straight down (:data:`HEAD_VIEWS`), with a light casting
+the object's shadow on the table and one or two smaller distractor objects (boxes, cans) on the
+table beside it (each distractor's table-plane area is at most half the target's, so the
+segmentation's default ``target: largest`` picks the paper object). Ground truth is the target's,
+in the table frame (:class:`~gpis_grasp_ros.sim.scene.GroundTruth`).
 """
 
 from __future__ import annotations
@@ -24,13 +32,14 @@ import argparse
 import math
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.sim.scene import (
+    Distractor,
     MaterialRegion,
     SceneSpec,
     mask_to_polygon,
@@ -257,6 +266,73 @@ OBJECTS: dict[str, ObjectDef] = {o.letter: o for o in (
 )}
 
 
+# --------------------------------------------------------------------------- head-camera views
+@dataclass(frozen=True)
+class HeadView:
+    """A PR2-like head-camera view of one object: camera pose (degrees, m), light (azimuth, elevation in
+    degrees) and distractors given as (kind, side, gap_cm, size_cm, height_cm, colour): a ``box`` (size =
+    (length, width)) or ``can`` (size = (diameter,)) placed ``gap_cm`` beyond the object's bounding box on
+    ``side`` (``+x``, ``-x``, ``+y``, ``-y``), centred on the box's other axis."""
+
+    tilt_deg: float
+    azimuth_deg: float
+    light: tuple[float, float]
+    distractors: tuple[tuple, ...]
+    distance_m: float = 0.9
+
+
+GREEN, YELLOW, BLUE, ORANGE = (52, 128, 74), (204, 186, 58), (48, 84, 164), (212, 118, 46)
+
+HEAD_VIEWS: dict[str, HeadView] = {
+    'A': HeadView(50.0, 0.0, (210.0, 60.0), (('can', '+x', 3.0, (4.0,), 5.0, GREEN),)),
+    'B': HeadView(45.0, -10.0, (160.0, 55.0), (('box', '+x', 3.0, (1.5, 1.5), 2.0, ORANGE),
+                                                ('box', '-y', 3.0, (1.8, 1.2), 1.5, BLUE))),
+    'C': HeadView(55.0, 15.0, (230.0, 62.0), (('box', '-x', 3.0, (3.0, 2.5), 2.5, YELLOW),)),
+    'D': HeadView(48.0, -5.0, (200.0, 58.0), (('can', '+x', 3.0, (3.0,), 6.0, BLUE),)),
+    'E': HeadView(52.0, 8.0, (150.0, 60.0), (('box', '+x', 3.0, (2.5, 2.5), 3.0, GREEN),)),
+    'F': HeadView(50.0, -15.0, (220.0, 65.0), (('can', '-x', 3.0, (2.4,), 4.0, ORANGE),), distance_m=0.85),
+    'G': HeadView(46.0, 5.0, (190.0, 60.0), (('box', '-x', 3.0, (3.0, 3.0), 4.0, ORANGE),)),
+    'H': HeadView(54.0, -8.0, (200.0, 55.0), (('box', '+x', 3.0, (2.0, 3.0), 2.5, GREEN),
+                                               ('can', '-x', 3.0, (3.0,), 5.0, YELLOW))),
+}
+HEAD_SEED_OFFSET = 1000
+HEAD_DIR = 'head'
+
+
+def _place_distractor(outline: np.ndarray, kind: str, side: str, gap_cm: float, size_cm: tuple[float, ...],
+                      height_cm: float, color: tuple[int, int, int]) -> Distractor:
+    lo, hi = outline.min(axis=0), outline.max(axis=0)
+    mid = (lo + hi) / 2.0
+    axis = 0 if side[1] == 'x' else 1
+    half = (size_cm[0] if kind == 'can' or axis == 0 else size_cm[1]) * CM / 2.0
+    centre = mid.copy()
+    centre[axis] = hi[axis] + gap_cm * CM + half if side[0] == '+' else lo[axis] - gap_cm * CM - half
+    if kind == 'can':
+        return Distractor.cylinder(float(centre[0]), float(centre[1]), size_cm[0] * CM / 2.0, height_cm * CM, color)
+    if kind == 'box':
+        return Distractor.box(float(centre[0]), float(centre[1]), size_cm[0] * CM, size_cm[1] * CM, height_cm * CM,
+                              color=color)
+    raise ValueError(f"unknown distractor kind '{kind}' (box or can)")
+
+
+def head_spec(letter: str) -> SceneSpec:
+    """Scene of object ``letter`` seen by the head camera of :data:`HEAD_VIEWS` (own seed)."""
+    base = OBJECTS[letter.upper()].build()
+    view = HEAD_VIEWS[letter.upper()]
+    distractors = [_place_distractor(base.outline, *d) for d in view.distractors]
+    return replace(base, camera_height=view.distance_m, camera_tilt=view.tilt_deg, camera_azimuth=view.azimuth_deg,
+                   light=view.light, distractors=distractors, seed=base.seed + HEAD_SEED_OFFSET,
+                   name=f'{base.name}_head')
+
+
+def make_head_bag(letter: str, out_dir: str | Path = DEFAULT_BAG_DIR / HEAD_DIR) -> Path:
+    """Simulate object ``letter`` seen by the head camera and (over)write ``out_dir/<letter>_<name>.mcap``."""
+    obj = OBJECTS[letter.upper()]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return write_scene_bag(head_spec(letter), out / obj.filename, overwrite=True)
+
+
 def make_object_bag(letter: str, out_dir: str | Path = DEFAULT_BAG_DIR, write_outline: bool = True) -> Path:
     """Simulate object ``letter`` and (over)write ``out_dir/<letter>_<name>.mcap``; returns the path."""
     obj = OBJECTS[letter.upper()]
@@ -270,10 +346,12 @@ def make_object_bag(letter: str, out_dir: str | Path = DEFAULT_BAG_DIR, write_ou
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``gpis-grasp make-bags``: regenerate the eight object bags."""
+    """``gpis-grasp make-bags``: regenerate the eight object bags (``--head``: the head-camera set)."""
     parser = argparse.ArgumentParser(prog='gpis-grasp make-bags', description=__doc__.split('\n\n')[0])
     parser.add_argument('--out', default=str(DEFAULT_BAG_DIR), help='output directory (default: %(default)s)')
     parser.add_argument('--only', default='', help='comma-separated object letters, e.g. A,B (default: all)')
+    parser.add_argument('--head', action='store_true',
+                        help=f'the head-camera set (tilted camera, shadows, distractors) into OUT/{HEAD_DIR}/')
     args = parser.parse_args(argv)
     letters = [x.strip().upper() for x in args.only.split(',') if x.strip()] or list(OBJECTS)
     unknown = [x for x in letters if x not in OBJECTS]
@@ -283,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for letter in letters:
         try:
-            path = make_object_bag(letter, args.out)
+            path = make_head_bag(letter, Path(args.out) / HEAD_DIR) if args.head else make_object_bag(letter, args.out)
         except (ValueError, OSError) as err:
             print(f'gpis-grasp make-bags: object {letter}: {err}', file=sys.stderr)
             return 1

@@ -1,13 +1,17 @@
-"""``gpis-grasp make-bag``: simulate a Carmine looking down at one object and write an MCAP bag.
+"""``gpis-grasp make-bag``: simulate an RGB-D camera looking at one object on a table and write an MCAP bag.
 
 Examples::
 
     gpis-grasp make-bag --polygon bags/objects/H_marker.csv --height 0.019 \\
         --region specular:-0.013,-0.011,0.013,0.011 --out /tmp/marker.mcap
     gpis-grasp make-bag --mask part.png --mpp 0.0005 --region-polygon transparent:lid.csv --out part.mcap
+    gpis-grasp make-bag --polygon bags/objects/H_marker.csv --height 0.019 --camera-height 0.9 --tilt 50 \\
+        --light 200,55 --distractor box:0.11,0,0.03,0.03,0.03/52,128,74 --sensor realsense_d400 --out head.mcap
 
-Coordinates are metres on the table plane, which are the camera's x (right) and y (down);
-the optical axis meets the table at (0, 0). Exit status 2 on bad input (nothing is written).
+Coordinates are metres in the table plane (table frame: for the default top-down camera the camera's
+x (right) and y (down)); the camera looks at the table point (0, 0) from ``--camera-height`` metres
+along its optical axis, tilted ``--tilt`` degrees from straight down (leaning back towards +y) and
+turned ``--azimuth`` degrees about the table normal. Exit status 2 on bad input (nothing is written).
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import numpy as np
 
 from gpis_grasp_ros.sim.scene import (
     MATERIAL_KINDS,
+    SENSORS,
+    Distractor,
     MaterialRegion,
     SceneSpec,
     load_mask_png,
@@ -82,13 +88,46 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--height', type=float, default=0.02, help='object height above the table (m, default 0.02)')
     p.add_argument('--table-color', default='186,176,160', metavar='R,G,B', help='table colour (default %(default)s)')
     p.add_argument('--object-color', default='70,90,150', metavar='R,G,B', help='object colour (default %(default)s)')
-    p.add_argument('--camera-height', type=float, default=0.7, help='camera above the table (m, default 0.7)')
+    p.add_argument('--camera-height', type=float, default=0.7,
+                   help='camera distance from the table point (0, 0) along the optical axis; the height for a '
+                        'top-down camera (m, default 0.7)')
+    p.add_argument('--tilt', type=float, default=0.0, help='camera tilt from straight down (degrees, default 0)')
+    p.add_argument('--azimuth', type=float, default=0.0,
+                   help='camera rig turned about the table normal (degrees, default 0)')
+    p.add_argument('--light', default=None, metavar='AZIMUTH,ELEVATION',
+                   help='direction towards the light in the table frame (degrees); casts shadows (default: none)')
+    p.add_argument('--shadow-strength', type=float, default=0.5,
+                   help='fraction of the light a shadow removes from the table colour (default 0.5)')
+    p.add_argument('--distractor', action='append', default=[], metavar='box:x,y,l,w,h[,yaw] | can:x,y,r,h',
+                   help="another (opaque) object on the table, m / degrees; optional colour suffix '/R,G,B'; "
+                        'repeatable')
+    p.add_argument('--sensor', default='carmine', choices=SENSORS,
+                   help='depth sensor model and default intrinsics (default carmine)')
     p.add_argument('--frames', type=int, default=10, help='number of RGB-D frames at 30 Hz (default 10)')
     p.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
     p.add_argument('--name', default=None, help='object name stored in the bag metadata (default: file stem)')
     p.add_argument('--out', required=True, metavar='BAG', help='output: BAG.mcap file, or a rosbag2 directory')
     p.add_argument('--overwrite', action='store_true', help='replace an existing output')
     return p
+
+
+def _distractor(text: str) -> Distractor:
+    kind, sep, rest = text.partition(':')
+    kind = kind.strip().lower()
+    values, _, color_text = rest.partition('/')
+    color = _color(color_text, f"--distractor '{text}' colour") if color_text else (52, 128, 74)
+    if kind == 'box':
+        parts = [v for v in values.split(',') if v.strip()]
+        x, y, length, width, height, *yaw = _floats(values, 6 if len(parts) == 6 else 5, f"--distractor '{text}'")
+        if min(length, width, height) <= 0:
+            raise ValueError(f"--distractor '{text}': length, width and height must be positive")
+        return Distractor.box(x, y, length, width, height, yaw[0] if yaw else 0.0, color=color)
+    if kind == 'can':
+        x, y, radius, height = _floats(values, 4, f"--distractor '{text}'")
+        if min(radius, height) <= 0:
+            raise ValueError(f"--distractor '{text}': radius and height must be positive")
+        return Distractor.cylinder(x, y, radius, height, color=color)
+    raise ValueError(f"--distractor '{text}': expected box:x,y,l,w,h[,yaw] or can:x,y,r,h (m)")
 
 
 def spec_from_args(args: argparse.Namespace) -> SceneSpec:
@@ -116,7 +155,11 @@ def spec_from_args(args: argparse.Namespace) -> SceneSpec:
     return SceneSpec(outline=outline, regions=regions, height=args.height,
                      table_color=_color(args.table_color, '--table-color'),
                      object_color=_color(args.object_color, '--object-color'), camera_height=args.camera_height,
-                     frames=args.frames, seed=args.seed, name=args.name or source.stem)
+                     frames=args.frames, seed=args.seed, name=args.name or source.stem, camera_tilt=args.tilt,
+                     camera_azimuth=args.azimuth,
+                     light=None if args.light is None else tuple(_floats(args.light, 2, '--light')),
+                     shadow_strength=args.shadow_strength, distractors=[_distractor(t) for t in args.distractor],
+                     sensor=args.sensor)
 
 
 def main(argv: list[str] | None = None) -> int:
