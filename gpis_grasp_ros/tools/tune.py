@@ -1,0 +1,258 @@
+"""``gpis-grasp tune``: k-fold cross-validation of λ and α on a dataset (issue 13, paper section VI-A).
+
+    gpis-grasp tune --dataset DIR --out DIR --lambda 0,0.5,1,2,4,8 --alpha 0.25,0.5,1,2 --folds 5
+                    [--method gp-gpis-opt] [--seeds 1] [--executor serial|process|dask] [--workers N] ...
+
+**What is tuned.** λ is ``uncertainty_penalty`` of :class:`~gpis_grasp_ros.core.planners.PlannerParams`,
+the penalty on the SDF variance at the contacts in eq. 4/6 (per cell² of variance; the paper picks
+λ = 2 "based on a grid search using the set of validation shapes" and says "λ can be set using
+cross-validation over a set of validation shapes"). α is ``antipodal_alpha``, the bound of the first
+antipodal constraint of eq. 5, ‖n1 + n2‖² <= α ("α may be set using cross-validation", section VI-B):
+with unit normals ‖n1 + n2‖² = 4 sin²(φ/2), φ the angle between n1 and −n2, so α = 0.5 allows
+φ <= 41° and α >= 4 switches the constraint off. It is not the GP-U/GP-D choice and not a GP
+hyperparameter. Both only affect GP-GPIS-OPT (and λ also GP-U), so ``--method`` defaults to
+``gp-gpis-opt``.
+
+**Score.** Every object × (λ, α) × seed is one task of :mod:`gpis_grasp_ros.tools.evaluate` (same
+executors, incremental results and resume): the planned grasp is executed ``--trials`` times on the
+TRUE shape by the simulated gripper; the score of a task is its success rate (0 when the planner
+returns no grasp). Objects whose scene yields no GPIS or that have no ground truth are left out of
+the folds (counted in the report). Scores are averaged over seeds per object.
+
+**Cross-validation.** Objects are shuffled (``--cv-seed``) and split into k folds. For each fold the
+(λ, α) with the best mean score on the other k − 1 folds is chosen (ties: smaller λ, then smaller
+α — the least penalised setting) and scored on the held-out fold. The reported choice is the setting
+with the best mean held-out score over the folds (the usual CV estimate); its spread is given by the
+per-fold choices and by a bootstrap over objects (how often each λ wins when the objects are
+resampled). Outputs in ``--out``: ``tune.md`` (tables), ``tune.json``, ``cv_scores.csv``,
+``tune.png`` (held-out score vs λ per α, mean ± std over folds) and the task results in ``runs/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpis_grasp_ros.tools import evaluate as ev
+
+DEFAULT_LAMBDAS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
+DEFAULT_ALPHAS = (0.5,)
+
+
+def task_score(row: dict[str, Any]) -> float:
+    """Simulated success rate of a task on the true shape; 0 without a grasp, NaN if not scorable."""
+    if row['status'] in ('no_gpis', 'no_ground_truth'):
+        return float('nan')
+    if not row['success'] or not row['sim_trials']:
+        return 0.0
+    return float(row['sim_success_rate'])
+
+
+@dataclass
+class CvResult:
+    """Score matrix and cross-validation outcome (settings are (λ, α) pairs in grid order)."""
+
+    settings: list[tuple[float, float]]
+    objects: list[str]
+    scores: np.ndarray  # (objects, settings) mean success over seeds
+    folds: list[list[int]]  # object indices per fold
+    fold_choice: list[int]  # chosen setting per fold (trained on the other folds)
+    fold_heldout: np.ndarray  # (folds, settings) held-out mean score of every setting
+    chosen: int  # best mean held-out score
+    bootstrap_wins: np.ndarray  # (settings,) fraction of bootstrap resamples in which each setting wins
+    excluded: dict[str, str]  # object -> reason
+
+
+def score_matrix(rows: Sequence[dict[str, Any]], settings: Sequence[tuple[float, float]]
+                 ) -> tuple[list[str], np.ndarray, dict[str, str]]:
+    """(objects, scores (objects, settings), excluded objects with reasons) from task rows."""
+    index = {s: j for j, s in enumerate(settings)}
+    per: dict[str, dict[int, list[float]]] = {}
+    excluded: dict[str, str] = {}
+    for r in rows:
+        s = task_score(r)
+        if math.isnan(s):
+            excluded[r['object']] = r['status']
+            continue
+        j = index.get((float(r['lambda']), float(r['alpha'])))
+        if j is not None:
+            per.setdefault(r['object'], {}).setdefault(j, []).append(s)
+    objects = sorted(o for o in per if o not in excluded)
+    scores = np.full((len(objects), len(settings)), np.nan)
+    for i, o in enumerate(objects):
+        for j, vals in per[o].items():
+            scores[i, j] = float(np.mean(vals))
+    complete = ~np.isnan(scores).any(axis=1)
+    for i in np.flatnonzero(~complete):
+        excluded[objects[i]] = 'incomplete (missing or failed tasks)'
+    keep = [o for o, c in zip(objects, complete, strict=True) if c]
+    return keep, scores[complete], excluded
+
+
+def _best(mean_scores: np.ndarray) -> int:
+    """Index of the best setting; ties go to the first (grid order: smaller λ, then smaller α)."""
+    return int(np.flatnonzero(mean_scores >= np.max(mean_scores) - 1e-12)[0])
+
+
+def cross_validate(scores: np.ndarray, k: int, seed: int = 0, n_bootstrap: int = 500) -> tuple[
+        list[list[int]], list[int], np.ndarray, int, np.ndarray]:
+    """k-fold CV over objects (rows of ``scores``): folds, per-fold choice, held-out scores, choice, bootstrap."""
+    n = scores.shape[0]
+    if not 2 <= k <= n:
+        raise ValueError(f'--folds must be between 2 and the number of usable objects ({n}), got {k}')
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(n)
+    folds = [sorted(int(i) for i in f) for f in np.array_split(order, k)]
+    choice, heldout = [], np.zeros((k, scores.shape[1]))
+    for f, test in enumerate(folds):
+        train = np.setdiff1d(np.arange(n), test)
+        choice.append(_best(scores[train].mean(axis=0)))
+        heldout[f] = scores[test].mean(axis=0)
+    chosen = _best(heldout.mean(axis=0))
+    wins = np.zeros(scores.shape[1])
+    for _ in range(n_bootstrap):
+        wins[_best(scores[rng.integers(n, size=n)].mean(axis=0))] += 1
+    return folds, choice, heldout, chosen, wins / max(1, n_bootstrap)
+
+
+def run_cv(rows: Sequence[dict[str, Any]], lambdas: Sequence[float], alphas: Sequence[float], k: int,
+           seed: int = 0) -> CvResult:
+    settings = [(float(lam), float(a)) for lam in lambdas for a in alphas]
+    objects, scores, excluded = score_matrix(rows, settings)
+    folds, choice, heldout, chosen, wins = cross_validate(scores, k, seed)
+    return CvResult(settings, objects, scores, folds, choice, heldout, chosen, wins, excluded)
+
+
+def report_markdown(cv: CvResult) -> str:
+    s = cv.settings
+    n = len(cv.objects)
+    lines = ['| λ | α | mean success (all objects) ± s.e. | held-out success, mean ± std over folds | '
+             'folds choosing it | bootstrap wins |', '|---|---|---|---|---|---|']
+    for j, (lam, a) in enumerate(s):
+        col = cv.scores[:, j]
+        se = float(np.std(col, ddof=1) / math.sqrt(n)) if n > 1 else float('nan')
+        mark = ' **(chosen)**' if j == cv.chosen else ''
+        lines.append(f'| {lam:g}{mark} | {a:g} | {col.mean():.3f} ± {se:.3f} | {cv.fold_heldout[:, j].mean():.3f} ± '
+                     f'{cv.fold_heldout[:, j].std():.3f} | {cv.fold_choice.count(j)}/{len(cv.folds)} | '
+                     f'{cv.bootstrap_wins[j]:.2f} |')
+    lam_c, a_c = s[cv.chosen]
+    fold_lams = [s[c][0] for c in cv.fold_choice]
+    fold_alphas = [s[c][1] for c in cv.fold_choice]
+    lam_wins: dict[float, float] = {}
+    for j, (lam, _a) in enumerate(s):
+        lam_wins[lam] = lam_wins.get(lam, 0.0) + float(cv.bootstrap_wins[j])
+    best = cv.fold_heldout[:, cv.chosen]
+    lines += ['', f'Chosen by {len(cv.folds)}-fold cross-validation on {n} objects: **λ = {lam_c:g}, α = {a_c:g}** '
+              f'(held-out success {best.mean():.3f} ± {best.std():.3f} over folds).',
+              f'Per-fold choices (trained on the other folds): λ = {", ".join(f"{v:g}" for v in fold_lams)}; '
+              f'α = {", ".join(f"{v:g}" for v in fold_alphas)} (λ median {np.median(fold_lams):g}, '
+              f'range {min(fold_lams):g}–{max(fold_lams):g}).',
+              'Bootstrap over objects (share of resamples in which each λ wins): '
+              + ', '.join(f'λ={lam:g}: {w:.2f}' for lam, w in lam_wins.items()) + '.']
+    if cv.excluded:
+        reasons: dict[str, int] = {}
+        for r in cv.excluded.values():
+            reasons[r] = reasons.get(r, 0) + 1
+        lines.append('Objects left out: ' + ', '.join(f'{v} ({k})' for k, v in sorted(reasons.items())) + '.')
+    return '\n'.join(lines)
+
+
+def plot(cv: CvResult, path: Path) -> None:
+    """Held-out success vs λ (symlog x), one line per α, mean ± std over folds; chosen setting ringed."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    lambdas = sorted({lam for lam, _ in cv.settings})
+    alphas = sorted({a for _, a in cv.settings})
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
+    for a in alphas:
+        idx = [cv.settings.index((lam, a)) for lam in lambdas]
+        mean = cv.fold_heldout[:, idx].mean(axis=0)
+        std = cv.fold_heldout[:, idx].std(axis=0)
+        ax.errorbar(lambdas, mean, yerr=std, marker='o', capsize=3, label=f'α = {a:g}')
+    lam_c, a_c = cv.settings[cv.chosen]
+    ax.plot([lam_c], [cv.fold_heldout[:, cv.chosen].mean()], 'o', ms=14, mfc='none', mec='k', label='chosen')
+    ax.set_xscale('symlog', linthresh=0.5)
+    ax.set_xlabel('λ (uncertainty penalty, per cell² of SDF variance)')
+    ax.set_ylabel('held-out simulated success rate')
+    ax.set_title(f'{len(cv.folds)}-fold cross-validation, {len(cv.objects)} objects')
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def write_outputs(cv: CvResult, out: Path) -> str:
+    text = report_markdown(cv)
+    (out / 'tune.md').write_text(text + '\n', encoding='utf8')
+    lam_c, a_c = cv.settings[cv.chosen]
+    (out / 'tune.json').write_text(json.dumps({
+        'chosen': {'lambda': lam_c, 'alpha': a_c}, 'settings': cv.settings, 'objects': cv.objects,
+        'folds': cv.folds, 'fold_choice': [cv.settings[c] for c in cv.fold_choice],
+        'fold_heldout': cv.fold_heldout.tolist(), 'bootstrap_wins': cv.bootstrap_wins.tolist(),
+        'excluded': cv.excluded}, indent=1) + '\n', encoding='utf8')
+    with open(out / 'cv_scores.csv', 'w', newline='', encoding='utf8') as fh:
+        w = csv.writer(fh, lineterminator='\n')
+        w.writerow(['object'] + [f'lambda={lam:g};alpha={a:g}' for lam, a in cv.settings])
+        for o, row in zip(cv.objects, cv.scores, strict=True):
+            w.writerow([o] + [f'{v:.6g}' for v in row])
+    plot(cv, out / 'tune.png')
+    return text
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog='gpis-grasp tune', description=__doc__.split('\n\n')[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    ev.add_run_arguments(p)
+    p.add_argument('--lambda', dest='lambdas', type=ev._floats, default=list(DEFAULT_LAMBDAS),
+                   help='λ grid (default: 0,0.5,1,2,4,8)')
+    p.add_argument('--alpha', dest='alphas', type=ev._floats, default=list(DEFAULT_ALPHAS),
+                   help='α grid (default: 0.5)')
+    p.add_argument('--folds', type=int, default=5)
+    p.add_argument('--cv-seed', type=int, default=0, help='seed of the fold split and the bootstrap')
+    p.add_argument('--method', default='gp-gpis-opt', help='planner whose λ/α are tuned (default: %(default)s)')
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out = Path(args.out)
+    try:
+        if not args.lambdas or not args.alphas:
+            raise ValueError('--lambda and --alpha need at least one value each')
+        if any(v < 0 for v in args.lambdas) or any(v <= 0 for v in args.alphas):
+            raise ValueError('λ must be >= 0 and α > 0')
+        entries, digest = ev.load_entries(args.dataset, args.objects)
+        if args.folds > len(entries):
+            raise ValueError(f'--folds {args.folds} is more than the {len(entries)} objects of the dataset')
+        tasks = ev.make_tasks(entries, [args.method], range(max(1, args.seeds)), args.lambdas, args.alphas,
+                              ev.settings_from_args(args))
+        run = ev.run_evaluation(tasks, out / 'runs', args.executor, args.workers, args.scheduler, fresh=args.fresh,
+                                progress=not args.no_progress, dataset_digest=digest)
+        cv = run_cv(run.rows, args.lambdas, args.alphas, args.folds, args.cv_seed)
+    except ValueError as err:
+        print(f'gpis-grasp tune: {err}', file=sys.stderr)
+        return 2
+    print(write_outputs(cv, out))
+    print(f'\nwrote {out / "tune.md"}, {out / "tune.png"}, {out / "cv_scores.csv"}; task results in {out / "runs"}')
+    if run.failures:
+        print(f'gpis-grasp tune: {len(run.failures)} task(s) failed after retry (see '
+              f'{out / "runs" / "failures.jsonl"}); their objects were left out', file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
