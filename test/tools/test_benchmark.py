@@ -1,15 +1,17 @@
 """``gpis-grasp benchmark``: structure, invariants and serial/parallel identity on small settings.
 
 The benchmark runs once serially and once with two spawned workers on objects A and B with
-50 grasp x 50 shape samples, one seed and 5 simulated executions (module-scoped fixtures, about
-15 s in total on 2 cores); the scaling fit is checked on synthetic power laws.
+50 grasp x 50 shape samples, one seed, 5 simulated executions and a small calibration study
+(module-scoped fixtures); the scaling fit is checked on synthetic power laws.
 """
 
 from __future__ import annotations
 
 import csv
-import io
+import json
 import math
+import queue
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +23,8 @@ from gpis_grasp_ros.tools.benchmark import evaluation as ev
 ROOT = Path(__file__).resolve().parents[2]
 BAGS = [ROOT / 'bags' / 'A_tape_dispenser.mcap', ROOT / 'bags' / 'B_nail.mcap']
 SMALL = ev.BenchmarkSettings(seeds=1, grasp_samples=50, shape_samples=50, trials=5, blur_samples=200,
-                             com_samples=200)
+                             com_samples=200, calibration_candidates=8, calibration_trials=10,
+                             calibration_perturbations=64)
 
 
 def _without_times(rows: list[dict], drop: tuple[str, ...] = ev.TIME_COLUMNS) -> list[dict]:
@@ -83,10 +86,13 @@ def test_parallel_run_equals_serial_run(serial: ev.BenchmarkResult, parallel: ev
 
 def test_output_files(written: Path) -> None:
     for name in ('table1.md', 'results.csv', 'objects.csv', 'summary.json', 'pf_bars.png', 'runtime.png',
-                 'fig4.png'):
+                 'fig4.png', 'calibration.csv', 'calibration.md', 'reliability.png'):
         assert (written / name).stat().st_size > 0, name
+    for name in ('pf_bars.png', 'fig4.png', 'reliability.png'):
+        assert (written / name).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n', name
     for bag in BAGS:
         assert (written / 'objects' / f'{bag.stem}.png').stat().st_size > 0
+        assert (written / 'calibration' / f'reliability_{bag.stem[0]}.png').stat().st_size > 0
     with open(written / 'results.csv') as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == len(BAGS) * len(ev.METHODS) * SMALL.seeds
@@ -100,16 +106,42 @@ def test_output_files(written: Path) -> None:
         body.append(line)
     assert [line.split('|')[1].strip() for line in body] == ['A', 'B']
     assert '(0.72)' in body[0]  # the paper's GP-M value of object A next to ours
+    summary = json.loads((written / 'summary.json').read_text())
+    g = summary['goal_figures']
+    ratios = list(g['time_ratio_gp_p_over_gp_g_worst'].values())
+    assert g['time_ratio_mean'] == pytest.approx(np.mean(ratios))
+    assert g['time_ratio_median'] == pytest.approx(np.median(ratios))
+    assert set(summary['calibration']['overall']) >= {'p_tilde_hard', 'p_tilde_smooth', 'p_f', 'p_true_grid'}
 
 
-def test_progress_bar_reaches_the_total() -> None:
-    stream = io.StringIO()
-    bar = ev.ProgressBar(3, stream=stream)
-    for _ in range(3):
-        bar.advance('x')
-    bar.close()
-    lines = stream.getvalue().strip().splitlines()
-    assert len(lines) == 3 and '3/3' in lines[-1] and 'left ~0:00' in lines[-1]
+def test_calibration_rows(serial: ev.BenchmarkResult) -> None:
+    """Every planned grasp and the requested candidates get three predictions and simulated outcomes."""
+    for o in serial.objects:
+        planned = [r for r in o.calibration if r['kind'] == 'planned']
+        cands = [r for r in o.calibration if r['kind'] == 'candidate']
+        assert len(planned) == sum(1 for r in o.rows if r['success'])
+        assert len(cands) == SMALL.calibration_candidates
+        for r in o.calibration:
+            for key in ('p_f', 'p_tilde_hard', 'p_tilde_smooth', 'p_true_grid'):
+                assert 0.0 <= r[key] <= 1.0, (key, r)
+            assert r['sim_trials'] == SMALL.calibration_trials and 0 <= r['sim_successes'] <= r['sim_trials']
+        # Candidates spread over the screening P_F: the lowest and the highest available are taken.
+        screen = [r['screen_p_f'] for r in cands]
+        assert min(screen) <= 0.2 and max(screen) >= 0.5
+        assert {'gp_z_rms', 'gp_coverage95'} <= set(o.info)
+
+
+def test_progress_messages_are_all_drained() -> None:
+    """Late progress messages of the workers are waited for until the bar is complete."""
+    q: queue.Queue = queue.Queue()
+    seen: list[tuple[str, str]] = []
+    for i in range(5):
+        q.put(('obj', f'm{i}'))
+    ev._drain(q, seen.append)
+    assert len(seen) == 5
+    threading.Timer(0.3, lambda: q.put(('obj', 'late'))).start()
+    ev._drain(q, seen.append, wait_s=3.0, complete=lambda: len(seen) >= 6)
+    assert seen[-1] == ('obj', 'late')
 
 
 def test_derived_seeds_are_stable_and_distinct() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import multiprocessing as mp
 import os
@@ -11,13 +12,14 @@ import time
 import zlib
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
+from tqdm import tqdm
 
 from gpis_grasp_ros.core.blur import gpis_blur
 from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, bilinear, find_contacts
@@ -28,6 +30,7 @@ from gpis_grasp_ros.core.planners import PlannerParams, execute_grasp_trials, pl
 from gpis_grasp_ros.core.quality import ferrari_canny_l1, torque_scale
 from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 from gpis_grasp_ros.data.bags import load_bag
+from gpis_grasp_ros.tools.benchmark.calibration import calibrate_object
 
 # ------------------------------------------------------------------------------------------
 # Methods, reference numbers, settings
@@ -36,23 +39,30 @@ from gpis_grasp_ros.data.bags import load_bag
 
 @dataclass(frozen=True)
 class MethodSpec:
-    """A benchmarked planner: ``key`` (CSV), ``label`` (tables), ``planner`` (planners.plan name)."""
+    """A benchmarked planner: ``key`` (CSV), ``label`` (tables), ``planner`` (planners.plan name).
+
+    ``color`` is a matplotlib colour for the figures; ``extra`` marks methods that are not in the
+    paper's Table I (shown in the "beyond the paper" tables only).
+    """
 
     key: str
     label: str
     planner: str
     gp_p_adaptive: bool = False  # only used by 'gp-p'
-    color: tuple[int, int, int] = (0, 0, 0)  # BGR for the plots
+    color: str = 'black'
+    extra: bool = False
 
 
 METHODS: tuple[MethodSpec, ...] = (
-    MethodSpec('gp-m', 'GP-M', 'gp-m', color=(40, 40, 220)),
-    MethodSpec('gp-d', 'GP-D', 'gp-d', color=(0, 150, 250)),
-    MethodSpec('gp-u', 'GP-U', 'gp-u', color=(170, 110, 30)),
-    MethodSpec('gp-p', 'GP-P', 'gp-p', gp_p_adaptive=False, color=(180, 40, 160)),
-    MethodSpec('gp-p-adaptive', 'GP-P adaptive', 'gp-p', gp_p_adaptive=True, color=(230, 150, 220)),
-    MethodSpec('gp-g', 'GP-G', 'gp-gpis-opt', color=(30, 150, 30)),
-    MethodSpec('gp-g-reranked', 'GP-G re-ranked', 'gp-gpis-opt-reranked', color=(120, 200, 120)),
+    MethodSpec('gp-m', 'GP-M', 'gp-m', color='#dc2828'),
+    MethodSpec('gp-d', 'GP-D', 'gp-d', color='#fa9600'),
+    MethodSpec('gp-u', 'GP-U', 'gp-u', color='#1e6eaa'),
+    MethodSpec('gp-p', 'GP-P', 'gp-p', gp_p_adaptive=False, color='#a028b4'),
+    MethodSpec('gp-g', 'GP-G', 'gp-gpis-opt', color='#1e961e'),
+    MethodSpec('gp-p-adaptive', 'GP-P adaptive', 'gp-p', gp_p_adaptive=True, color='#dc96e6', extra=True),
+    MethodSpec('gp-g-reranked', 'GP-G re-ranked', 'gp-gpis-opt-reranked', color='#78c878', extra=True),
+    MethodSpec('gp-d-single', 'GP-D 1 start', 'gp-d-single', color='#fcd08c', extra=True),
+    MethodSpec('gp-u-single', 'GP-U 1 start', 'gp-u-single', color='#8cb4dc', extra=True),
 )
 METHOD_BY_KEY = {m.key: m for m in METHODS}
 #: The paper's Table I columns, in order.
@@ -73,8 +83,11 @@ PAPER_TABLE1: dict[str, dict[str, float]] = {
     'H': {'gp-m': 0.42, 'gp-d': 0.47, 'gp-u': 0.00, 'gp-p': 0.99, 'gp-g': 0.93, 'time_gp-p': 715.0, 'time_gp-g': 85.5},
 }
 
-#: Growth of the original implementation between M = 25 and M = 70 (seconds at 25, at 70), as
-#: quoted in issue #7: one SCP initialisation, and drawing 1000 shape samples.
+#: Growth of the original implementation between M = 25 and M = 70 (seconds at 25, at 70): one
+#: SCP initialisation, and drawing 1000 shape samples. These figures are NOT in the paper (its
+#: text only refers to "the supplementary file" for convergence and time complexity); they come
+#: from the authors' code repository (Matlab + CVX, exact GP), as quoted in an earlier issue of
+#: this project (#7). Used only for the side-by-side growth ratios of the scaling report.
 PAPER_SCALING: dict[str, tuple[float, float]] = {
     'gp_g_per_init_s': (8.4, 187.9),
     'sample_s': (1.5, 392.8),
@@ -100,6 +113,15 @@ class BenchmarkSettings:
     grid_size: int = 25  # M of the GPIS grid
     blur_samples: int = 1000  # joint samples for the GPIS-Blur figures
     com_samples: int = 1000  # joint samples for the centre-of-mass spread
+    methods: tuple[str, ...] = tuple(m.key for m in METHODS)  # keys of METHODS to run, in this order
+    calibration_candidates: int = 0  # calibration study: GP-P candidates per object (0 = no study)
+    calibration_trials: int = 50  # simulated executions per grasp of the calibration study
+    calibration_perturbations: int = 1000  # jaw perturbations of the mean-shape P̃_F estimates
+
+    @property
+    def method_specs(self) -> tuple[MethodSpec, ...]:
+        """The :class:`MethodSpec` of every key in ``methods`` (KeyError for an unknown key)."""
+        return tuple(METHOD_BY_KEY[k] for k in self.methods)
 
     def planner_params(self, spec: MethodSpec) -> PlannerParams:
         """:class:`~gpis_grasp_ros.core.planners.PlannerParams` of ``spec`` with these settings."""
@@ -221,23 +243,18 @@ class ObjectResult:
     outline: list[np.ndarray]  # true outline polylines (m)
     jaw_width: float  # m, for drawing
     grasps: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # first seed's grasps
+    #: GP-G seed 0, one entry per restart: objective history per SCP iteration and flags.
+    convergence: list[dict[str, Any]] = field(default_factory=list)
+    calibration: list[dict[str, Any]] = field(default_factory=list)  # rows of the calibration study
 
 
 _PROGRESS_QUEUE: Any = None  # set in workers by _worker_init
 
 
 def _worker_init(progress_queue: Any) -> None:
-    """Worker start-up: one BLAS thread (belt and braces: the environment already says so)."""
+    """Worker start-up: remember the progress queue; limit BLAS/OpenMP pools to one thread (threadpoolctl)."""
     global _PROGRESS_QUEUE
     _PROGRESS_QUEUE = progress_queue
-    _limit_blas_threads_globally()
-
-
-def _limit_blas_threads_globally() -> None:
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - optional dependency
-        return
     threadpool_limits(limits=1)
 
 
@@ -246,10 +263,89 @@ def _run_object_in_worker(task: ObjectTask) -> ObjectResult:
     return run_object(task, None if q is None else q.put)
 
 
+def _restart_history(info: Any) -> np.ndarray | None:
+    """Objective (eq. 6, maximised) per SCP iteration of one restart, if the planner recorded it."""
+    for name in ('objective_history', 'history'):
+        h = getattr(info, name, None)
+        if h is not None and len(h):
+            arr = np.asarray(h, dtype=np.float64)
+            if arr.ndim == 1:
+                return arr
+    return None
+
+
+def _convergence_entries(result: Any) -> list[dict[str, Any]]:
+    out = []
+    for info in getattr(result, 'restarts', []) or []:
+        out.append({'history': _restart_history(info), 'converged': bool(info.converged),
+                    'feasible': bool(info.feasible), 'reason': str(info.reason), 'iterations': int(info.iterations),
+                    'objective': float(info.objective)})
+    return out
+
+
+def _plan_or_failure(spec: MethodSpec, posterior: GpisPosterior, params: PlannerParams, seed: int) -> Any:
+    """``plan(...)``; an exception inside a planner becomes a failed result whose message names it.
+
+    The run goes on with the other methods and objects; the failure is counted in Table I
+    ("[n failed]"), its message is in results.csv and it is printed on stderr.
+    """
+    t0 = time.perf_counter()
+    try:
+        return plan(spec.planner, posterior, params, seed=seed)
+    except Exception as exc:  # noqa: BLE001 - reported, never swallowed
+        message = f'planner raised {type(exc).__name__}: {exc}'
+        print(f'gpis-grasp benchmark: {spec.key} (seed {seed}): {message}', file=sys.stderr)
+        nan2 = np.full(2, np.nan)
+        return PlanFailure(message=message, jaw1=nan2, jaw2=nan2, planning_time=time.perf_counter() - t0)
+
+
+@dataclass
+class PlanFailure:
+    """Stand-in for a :class:`~gpis_grasp_ros.core.planners.GraspResult` of a planner that raised."""
+
+    message: str
+    jaw1: np.ndarray
+    jaw2: np.ndarray
+    planning_time: float
+    success: bool = False
+    width: float = float('nan')
+    p_f: float = 0.0
+    p_f_std_error: float = 0.0
+    q_mean: float = float('nan')
+    objective: float = float('nan')
+    iterations: int = 0
+    n_candidates: int = 0
+    converged: bool = False
+    evaluation_time: float = 0.0
+    restarts: list = field(default_factory=list)
+
+
+def _segment(scene: Any, grid_size: int) -> tuple[Any, str]:
+    """Segmentation as the nodes run it; if the node's checks refuse the target, the reason and a run without them.
+
+    The benchmark evaluates the planners on every object: when segmentation refuses the target
+    with the node defaults (e.g. a target wider than the gripper opening in every direction), the
+    refusal is recorded (``segmentation_refusal`` in objects.csv, listed under Table I) and the
+    object is segmented again with that check off (``max_opening_m = 0``).
+    """
+    params = SensingParams(grid_size=grid_size)
+    try:
+        return segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, params,
+                              frame_id=scene.frame_id), ''
+    except ValueError as exc:
+        names = {f.name for f in dataclasses.fields(SensingParams)}
+        if 'max_opening_m' not in names or getattr(params, 'max_opening_m', 0) <= 0:
+            raise
+        relaxed = dataclasses.replace(params, max_opening_m=0.0)
+        return segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, relaxed,
+                              frame_id=scene.frame_id), str(exc)
+
+
 def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | None = None) -> ObjectResult:
     """Build the GPIS of one bag and run every method for every seed (see the module docstring).
 
-    ``report((object, method_key))`` is called after all seeds of a method are done.
+    ``report((object, step))`` is called after all seeds of a method are done (and after the
+    calibration study).
     """
     t_object = time.perf_counter()
     s = task.settings
@@ -259,8 +355,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
     scene = load_bag(bag)
     # posterior_from_scene, split in its two stages to time them separately.
     t0 = time.perf_counter()
-    sensing = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics,
-                             SensingParams(grid_size=s.grid_size), frame_id=scene.frame_id)
+    sensing, refusal = _segment(scene, s.grid_size)
     occ, noise, geometry = publishable_grids(sensing)
     t1 = time.perf_counter()
     posterior = posterior_from_grids(occ, noise, geometry)
@@ -276,18 +371,20 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
         'max_std_cells': float(np.sqrt(np.max(posterior.variance)) / res),
         'com_spread_rms_cells': com_rms / res, 'com_spread_p95_cells': com_p95 / res,
         'mean_shape_iou': truth.iou_on(geometry, posterior.mean) if truth is not None else float('nan'),
-        'sensing_time_s': t1 - t0, 'gpis_fit_time_s': t2 - t1,
+        'sensing_time_s': t1 - t0, 'gpis_fit_time_s': t2 - t1, 'segmentation_refusal': refusal,
     }
     rows: list[dict[str, Any]] = []
     grasps: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    convergence: list[dict[str, Any]] = []
     base_gripper = s.planner_params(METHODS[0]).gripper
     # σ_g and the contact-patch tolerance = 0.5 planning cell, fixed in metres for the true grid
     exec_gripper = base_gripper.resolved(geometry)
-    for spec in METHODS:
+    for spec in s.method_specs:
         params = s.planner_params(spec)
         for seed in range(s.seeds):
             planner_seed = derive_seed('planner', seed, name)
-            r = plan(spec.planner, posterior, params, seed=planner_seed)
+            r = _plan_or_failure(spec, posterior, params, planner_seed)
+            restarts = list(getattr(r, 'restarts', []) or [])
             row: dict[str, Any] = {
                 'object': name, 'letter': letter, 'method': spec.key, 'label': spec.label, 'seed': seed,
                 'planner_seed': planner_seed, 'success': bool(r.success), 'message': r.message,
@@ -295,7 +392,8 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
                 'jaw2_x': float(r.jaw2[0]), 'jaw2_y': float(r.jaw2[1]), 'width_m': float(r.width),
                 'p_f': float(r.p_f), 'p_f_std_error': float(r.p_f_std_error), 'n_shape_samples': s.shape_samples,
                 'q_f_mean': float(r.q_mean), 'objective': float(r.objective), 'iterations': int(r.iterations),
-                'n_candidates': int(r.n_candidates),
+                'n_candidates': int(r.n_candidates), 'converged': bool(r.converged),
+                'restarts': len(restarts), 'restarts_converged': sum(1 for i in restarts if i.converged),
             }
             if truth is not None and r.success:
                 q_n, status = truth.nominal_quality(r.jaw1, r.jaw2, exec_gripper)
@@ -310,13 +408,31 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
             rows.append(row)
             if seed == 0 and r.success:
                 grasps[spec.key] = (np.asarray(r.jaw1, dtype=np.float64), np.asarray(r.jaw2, dtype=np.float64))
+            if seed == 0 and spec.key == 'gp-g':
+                convergence = _convergence_entries(r)
         if report is not None:
             report((name, spec.key))
+    calibration_rows: list[dict[str, Any]] = []
+    if s.calibration_candidates > 0 and truth is not None:
+        t_cal = time.perf_counter()
+        planned = [{'method': r['method'], 'seed': r['seed'], 'jaw1': (r['jaw1_x'], r['jaw1_y']),
+                    'jaw2': (r['jaw2_x'], r['jaw2_y']), 'p_f': r['p_f']} for r in rows if r['success']]
+        calibration_rows, z_info = calibrate_object(
+            posterior, truth.sdf, truth.geometry, truth.com, planned, s.planner_params(METHOD_BY_KEY['gp-p']),
+            s.calibration_candidates, s.calibration_trials, s.calibration_perturbations,
+            derive_seed('calibration', name), object_name=name)
+        for row in calibration_rows:
+            row['letter'] = letter
+        info.update(z_info)
+        info['calibration_time_s'] = time.perf_counter() - t_cal
+        if report is not None:
+            report((name, 'calibration'))
     blur = gpis_blur(posterior, n_samples=s.blur_samples, rng=np.random.default_rng(derive_seed('blur', name)))
     info['object_wall_time_s'] = time.perf_counter() - t_object
     return ObjectResult(object=name, letter=letter, bag=str(bag), rows=rows, info=info, geometry=geometry,
                         blur=blur, outline=truth.outline() if truth is not None else [],
-                        jaw_width=base_gripper.jaw_width, grasps=grasps)
+                        jaw_width=base_gripper.jaw_width, grasps=grasps, convergence=convergence,
+                        calibration=calibration_rows)
 
 
 # ------------------------------------------------------------------------------------------
@@ -324,75 +440,10 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
 # ------------------------------------------------------------------------------------------
 
 
-class ProgressBar:
-    """Plain-text progress bar on a stream: done / total steps, elapsed time and estimated time left.
-
-    On a terminal the line is redrawn in place; otherwise one line is written per step.
-    """
-
-    def __init__(self, total: int, unit: str = 'objects x methods', stream: Any = None, width: int = 28,
-                 enabled: bool = True) -> None:
-        self.total = max(int(total), 1)
-        self.unit = unit
-        self.stream = sys.stderr if stream is None else stream
-        self.width = width
-        self.enabled = enabled
-        self.done = 0
-        self.t0 = time.perf_counter()
-        self._tty = bool(getattr(self.stream, 'isatty', lambda: False)())
-
-    @staticmethod
-    def _fmt(seconds: float) -> str:
-        seconds = max(0, int(round(seconds)))
-        return f'{seconds // 60:d}:{seconds % 60:02d}'
-
-    def advance(self, label: str = '', steps: int = 1) -> None:
-        self.done = min(self.total, self.done + steps)
-        if not self.enabled:
-            return
-        elapsed = time.perf_counter() - self.t0
-        left = elapsed / self.done * (self.total - self.done) if self.done else float('nan')
-        fill = int(round(self.width * self.done / self.total))
-        text = (f'[{"#" * fill}{"." * (self.width - fill)}] {self.done}/{self.total} {self.unit} '
-                f'elapsed {self._fmt(elapsed)} left ~{self._fmt(left) if math.isfinite(left) else "?"} {label}')
-        if self._tty:
-            self.stream.write('\r' + text.ljust(110))
-        else:
-            self.stream.write(text + '\n')
-        self.stream.flush()
-
-    def close(self) -> None:
-        if self.enabled and self._tty:
-            self.stream.write('\n')
-            self.stream.flush()
-
-
-class _SingleThreadEnvironment(AbstractContextManager):
-    """Temporarily set OPENBLAS/OMP/MKL thread counts to 1 (inherited by spawned workers)."""
-
-    VARS = ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS', 'VECLIB_MAXIMUM_THREADS',
-            'NUMEXPR_NUM_THREADS')
-
-    def __enter__(self) -> _SingleThreadEnvironment:
-        self._saved = {k: os.environ.get(k) for k in self.VARS}
-        for k in self.VARS:
-            os.environ[k] = '1'
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for k, v in self._saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
-def _blas_one_thread() -> AbstractContextManager:
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        return nullcontext()
-    return threadpool_limits(limits=1)
+def progress_bar(total: int, enabled: bool = True, unit: str = 'step', desc: str = 'benchmark') -> tqdm:
+    """A tqdm bar on stderr (``disable`` when not ``enabled``), with elapsed and remaining time."""
+    return tqdm(total=total, unit=unit, desc=desc, disable=not enabled, file=sys.stderr, dynamic_ncols=True,
+                smoothing=0.0)
 
 
 @dataclass
@@ -408,25 +459,41 @@ class BenchmarkResult:
     def rows(self) -> list[dict[str, Any]]:
         return [row for obj in self.objects for row in obj.rows]
 
+    @property
+    def calibration_rows(self) -> list[dict[str, Any]]:
+        return [row for obj in self.objects for row in obj.calibration]
+
+
+def steps_per_object(settings: BenchmarkSettings) -> int:
+    """Progress steps reported by :func:`run_object` for one object."""
+    return len(settings.methods) + (1 if settings.calibration_candidates > 0 else 0)
+
 
 def run_benchmark(bags: Sequence[str | os.PathLike[str]], settings: BenchmarkSettings = BenchmarkSettings(),
-                  workers: int | None = None, progress: bool = True) -> BenchmarkResult:
-    """Run :func:`run_object` for every bag, in ``workers`` spawned processes (1 = in this process)."""
+                  workers: int | None = None, progress: bool = True, desc: str = 'benchmark') -> BenchmarkResult:
+    """Run :func:`run_object` for every bag, in ``workers`` spawned processes (1 = in this process).
+
+    BLAS/OpenMP thread pools are limited to one thread (threadpoolctl) in this process for a serial
+    run and in every worker, so serial and parallel runs give bit-identical numbers.
+    """
     bags = [str(b) for b in bags]
     if not bags:
         raise ValueError('no bags to benchmark')
     tasks = [ObjectTask(b, settings, i) for i, b in enumerate(bags)]
     workers = max(1, min(int(workers or os.cpu_count() or 1), len(tasks)))
-    bar = ProgressBar(len(tasks) * len(METHODS), enabled=progress)
     t0 = time.perf_counter()
     results: dict[int, ObjectResult] = {}
-    if workers == 1:
-        with _blas_one_thread():
-            for task in tasks:
-                results[task.index] = run_object(task, lambda item: bar.advance(f'{item[0]} {item[1]}'))
-    else:
-        ctx = mp.get_context('spawn')
-        with _SingleThreadEnvironment():
+    with progress_bar(len(tasks) * steps_per_object(settings), progress, desc=desc) as bar:
+        def advance(item: tuple[str, str]) -> None:
+            bar.set_postfix_str(f'{item[0]} {item[1]}', refresh=False)
+            bar.update(1)
+
+        if workers == 1:
+            with threadpool_limits(limits=1):
+                for task in tasks:
+                    results[task.index] = run_object(task, advance)
+        else:
+            ctx = mp.get_context('spawn')
             progress_queue = ctx.Queue()
             with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
                                      initargs=(progress_queue,)) as pool:
@@ -434,22 +501,28 @@ def run_benchmark(bags: Sequence[str | os.PathLike[str]], settings: BenchmarkSet
                 pending = set(futures)
                 while pending:
                     done, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
-                    _drain(progress_queue, bar)
+                    _drain(progress_queue, advance)
                     for fut in done:
                         results[futures[fut].index] = fut.result()
-                _drain(progress_queue, bar, final=True)
+                # Messages still in the workers' queue feeders: wait for them (bounded).
+                _drain(progress_queue, advance, wait_s=2.0, complete=lambda: bar.n >= bar.total)
             progress_queue.close()
             progress_queue.join_thread()
-    bar.close()
     return BenchmarkResult([results[i] for i in range(len(tasks))], settings, workers, time.perf_counter() - t0)
 
 
-def _drain(progress_queue: Any, bar: ProgressBar, final: bool = False) -> None:
+def _drain(progress_queue: Any, advance: Callable[[tuple[str, str]], None], wait_s: float = 0.0,
+           complete: Callable[[], bool] | None = None) -> None:
+    """Hand every queued progress message to ``advance``; block up to ``wait_s`` for late ones until ``complete()``."""
+    deadline = time.perf_counter() + wait_s
     while True:
-        try:
-            item = progress_queue.get(timeout=0.2) if final and bar.done < bar.total else progress_queue.get_nowait()
-        except queue.Empty:
+        if complete is not None and complete():
             return
-        bar.advance(f'{item[0]} {item[1]}')
-
-
+        try:
+            left = deadline - time.perf_counter()
+            item = progress_queue.get(timeout=min(left, 0.2)) if left > 0 else progress_queue.get_nowait()
+        except queue.Empty:
+            if time.perf_counter() >= deadline:
+                return
+            continue
+        advance(item)
