@@ -38,6 +38,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
 
 SIGMA_Z_CONSTANT_M = 0.0012
 SIGMA_Z_QUADRATIC_PER_M = 0.0019
@@ -146,7 +147,8 @@ def effective_frame_count(depth_frames: np.ndarray, model: SensorModel, min_pixe
 
     Exact repeats are removed first (:func:`distinct_frames`). For the remaining n frames the
     temporal variance of each pixel valid in all of them is compared with the sensor model's
-    variance at that depth: n_eff = 1 + (n - 1) min(1, median(s_t^2) / median(sigma_model^2)).
+    variance at that depth: n_eff = 1 + (n - 1) min(1, median(s_t^2) / (b_n median(sigma_model^2))),
+    b_n = median(chi2_{n-1}) / (n - 1) the median's bias for Gaussian noise.
     Independent frames with the modelled noise give n_eff ~ n; frames that repeat one measurement
     (a paused driver, a still image played in a loop, strong temporal filtering) give n_eff ~ 1,
     so the averaged variance sigma^2 / n_eff is not under-estimated. With fewer than
@@ -164,5 +166,7 @@ def effective_frame_count(depth_frames: np.ndarray, model: SensorModel, min_pixe
     values = sub[:, ok]
     s2 = values.var(axis=0, ddof=1)
     model_var = model.variance(values.mean(axis=0))
-    ratio = float(np.median(s2) / max(float(np.median(model_var)), 1e-18))
+    # the median of a sample variance of n Gaussian values is chi2_{n-1} median / (n - 1) of the variance
+    unbias = float(chi2.ppf(0.5, n - 1) / (n - 1))
+    ratio = float(np.median(s2) / unbias / max(float(np.median(model_var)), 1e-18))
     return float(1.0 + (n - 1) * min(1.0, ratio))

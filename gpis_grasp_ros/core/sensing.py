@@ -1,93 +1,104 @@
-"""From RGBD frames to an occupancy grid and an SDF noise map (paper section III-B).
+"""From RGBD frames of a tabletop to a target's occupancy grid and SDF noise map (paper section III-B).
 
-Pipeline (one call, :func:`segment_frames`):
+Pipeline (one call, :func:`segment_frames`), for a camera looking down at a table at any tilt
+(0-60 degrees; the paper's PR2 head camera):
 
 1. **Averaging.** Depth is averaged per pixel over the frames with a valid return (finite,
-   > 0); the number of valid returns ``n`` is kept. Colour is averaged over all frames.
-2. **Table.** A plane z(u, v) = a u + b v + c is fitted to the valid depths of an image border
-   band by least squares with iterative outlier rejection (3 x 1.4826 MAD, at least 3 sigma of
-   the sensor), unless ``table_depth_m`` is given. The table colour is the per-channel median of
-   the border band, unless given. (The camera looks down at the table, objects lie inside.)
-3. **Masks (soft).** Height above the table h = z_table - z_mean. The depth evidence is the
-   probability that the true height exceeds ``height_threshold`` given the averaged sensor
-   noise, p_d = Phi((h - h_thr) / s_h) with s_h^2 = (sigma_z^2 + q^2 / 12) / n (Carmine axial
-   model and disparity quantisation, :mod:`~gpis_grasp_ros.core.noise_model`). The colour evidence
-   is p_c = Phi((|rgb - rgb_table| - c_thr) / c_sigma) (Euclidean RGB distance, 0-255 units);
-   unless set (> 0), both adapt to the table's texture seen in the border band: c_thr = max(20,
-   median + 5 MAD) and c_sigma = max(2, MAD) of the border distances, so faintly tinted
-   transparent parts (distance ~20-30 on the shipped bags' table) still register or at least
-   raise the noise map, while plain table pixels stay at p_c ~ 0.
-   Both maps are cleaned by a grey-level morphological opening then closing (OpenCV). The hard
-   masks ``depth_mask`` / ``rgb_mask`` are p > 0.5.
-4. **Occupancy.** The two masks are combined with inverse-variance weights, each mask's
-   variance being its Bernoulli variance p (1 - p) plus a floor that encodes how much that
-   sensor is trusted (depth more than colour by default, so a transparent part seen only in
-   colour does not enter the *mean* shape, as for Object A in the paper):
-   o = (p_d / v_d + p_c / v_c) / (1 / v_d + 1 / v_c). Pixels without any valid return are
-   **missing** and count as object (o = 1), as in the paper. Connected components of the
-   evidence (o, p_d or p_c > 0.5, or missing) smaller than ``min_object_area_px`` or than
-   ``min_component_fraction`` of the largest are discarded as clutter / specks (occupancy 0;
-   weak or discarded evidence still raises the noise map through rho below).
-5. **Grid.** The kept evidence's bounding box plus ``margin`` of its larger side on
-   every side gives a square of side S in the table plane, resampled to M x M square cells
-   (``grid_size``, default 25). A pixel (u, v) at table depth z_t is at x = (u - cx) z_t / fx,
-   y = (v - cy) z_t / fy (camera frame, metres); cells are averaged from bilinearly
-   interpolated pixel maps on an s x s sub-grid per cell (s >= pixels per cell), so coarse and
-   fine grids both integrate the image. A cell is missing when more than
-   ``missing_cell_fraction`` of its area has no valid return (excluded from GPIS training,
-   ``train_mask``). Cells outside the (cropped) image are ``observed = False`` and assumed to be
-   table: free, trained with SDF variance ``unobserved_variance_m2`` - the object is assumed to
-   lie inside the image, and leaving them untrained would let the negative prior mean invent
-   object there.
+   > 0); the number of valid returns ``n`` is kept. Colour is averaged over all frames. The frames
+   are worth n_eff <= N independent measurements, *measured* from their frame-to-frame depth
+   differences (:func:`~gpis_grasp_ros.core.noise_model.effective_frame_count`: identical
+   repeated frames count as one); a pixel's averaged variance is sigma_z^2 / (n n_eff / N).
+2. **Table frame** (:mod:`~gpis_grasp_ros.core.table_frame`). Every valid pixel is back-projected
+   to a camera-frame point (m); a robust plane fit (MSAC, inlier band from the sensor model
+   ``sensor``) over the whole cloud gives the table normal n (towards the camera) and offset d,
+   unless ``table_plane`` (a, b, c, d) or ``table_depth_m`` (fronto-parallel) is given. Heights
+   are measured along n. The table's colour model is learnt from the plane's inliers.
+3. **Evidence (soft).** Depth: p_d = Phi((h - h_thr) / s_h), h the height above the plane,
+   s_h the averaged depth noise projected on the normal, h_thr = max(``height_threshold``,
+   2 x the plane inliers' RMS). Colour (**shadow-proof**): a shadow darkens the table without
+   changing its chromaticity, x = alpha t (t the table colour, alpha < 1). The colour distance is
+   the distance from that shadow line, D = |x - clip(alpha*, 0, 1) t| with alpha* = x.t / |t|^2
+   (0-255 RGB units), so a shadow gives D ~ 0 while a tint, another hue or a brighter surface
+   does not; p_c = Phi((D - c_thr) / c_sigma) with c_thr = max(``color_threshold_min``, median + 5
+   MAD) and c_sigma = max(2, MAD) of D over the plane's inliers unless given. Both maps are
+   cleaned by a grey-level opening then closing.
+4. **Occupancy per pixel.** Inverse-variance combination of the masks (depth trusted more than
+   colour: a transparent part seen only in colour does not enter the *mean* shape, Object A of
+   the paper): o = (p_d / v_d + p_c / v_c) / (1 / v_d + 1 / v_c), v = p (1 - p) + floor.
+   Pixels without a valid return are **missing** and count as object (o = 1), as in the paper.
+5. **Target isolation in the table plane.** Evidence = (o, p_d or p_c > 0.5, or missing), only
+   above the plane (h > -band, below ``max_object_height_m``), over the table's extent (the convex
+   hull of the plane's inliers) and inside the region of interest (``roi_px`` pixel box and/or
+   ``roi_table`` box in the table frame). Each evidence pixel is projected **orthographically**
+   onto the plane (its foot p - h n; a missing pixel where its ray meets the plane) and
+   rasterised at about two pixel footprints; the raster is closed (3 x 3) and split into 8-connected
+   components; components under ``min_object_area_px`` pixels or ``min_object_area_m2`` are
+   specks. The number of objects seen is reported (``objects_seen``). ``target`` picks one:
+   ``largest`` (table-plane area), ``nearest_center`` (its pixels' centroid nearest the image
+   centre), ``pixel`` / ``table`` (the component containing ``target_point``: a pixel (u, v), or
+   table-frame (x, y) in m, within ``target_tolerance_m``). The target is refused (ValueError,
+   nothing to publish) when it reaches within ``border_px`` of the image (or pixel ROI) edge - it
+   is cut by the border - or when it is wider than ``max_opening_m`` in every direction.
+6. **Grid in the table plane.** The target's footprint bounding box in the table frame plus
+   ``margin`` of its larger side on every side gives a square of side S, M x M cells
+   (``grid_size``); the grid's pose is the table frame (``GridGeometry.rotation`` = R, ``z`` = d).
+   Every pixel is projected orthographically as above and averaged into the cell under its
+   foot; pixels of other objects count as table (occupancy 0: the grid holds the target only)
+   and their missing pixels are ignored. A cell that no pixel reaches is sampled at its centre's
+   image point if that pixel sees the table there (a grid finer than the pixels); if that pixel
+   sees something above the table the cell is **occluded** (hidden behind an object from a
+   tilted camera). Occluded cells and cells outside the image are ``observed = False``: assumed
+   table (free), trained with SDF variance ``unobserved_variance_m2`` (the object is assumed to
+   lie in view and to be a prism whose visible top covers its footprint; leaving them untrained
+   would let the negative prior mean invent object there). A cell is missing when more than
+   ``missing_cell_fraction`` of its pixels are the target's missing pixels (excluded from GPIS
+   training, ``train_mask``).
 
 Noise map. The GP observes the *signed distance*, so the map is the variance (m^2) of each
 cell's SDF value, the sum of these documented terms:
 
-* depth:          mean over the cell of s_z^2 / n (axial noise of the averaged depth, m^2). A
+* depth:          mean over the cell of s_z^2 / n_eff (axial noise of the averaged depth, m^2). A
   surface seen with axial error s_z is localised laterally to about the same error, so it is
   used 1:1 as an SDF error (the paper's "noise map based on a noise model of the Primesense").
 * disagreement:   ``disagreement_variance_m2`` x rho, rho = |mean p_d - mean p_c| over the
-  cell's valid pixels, in [0, 1]: the two masks disagree about the cell (averaging first means
-  that a boundary cell half covered in both masks, or a one-pixel edge misalignment, does not
-  count); plus the same variance x the missing fraction of partly missing (still trained)
-  cells. The ``noise_px`` debug map is the pixel version, s_z^2 / n + variance x |p_d - p_c|.
+  cell's valid pixels, in [0, 1]: the two masks disagree about the cell; plus the same variance
+  x the missing fraction of partly missing (still trained) cells. Shadows do not pass the colour
+  test, so a shadow cell has rho ~ 0 and is never uncertain.
 * propagation:    the SDF at a cell depends on the occupancy of the cells holding its nearest
   surface, not only on its own. For every connected component U_c of uncertain cells (missing,
   or rho > ``uncertainty_threshold``) the SDF is computed with U_c as object (f_obj) and as free
   (f_free); the cell's value is uncertain by Delta = f_obj - f_free, a Bernoulli choice with
   variance q (1 - q) Delta^2, q = 1/2 (``alternative_weight`` = 0.25); a component that is the
-  only object evidence is skipped ("free" would mean no object at all). This error is the *same*
-  for all cells that depend on U_c, but the GP noise is independent per cell, and n cells with
-  a shared error would average it away as if it had variance / n. The term is therefore
-  multiplied by n_eff = min(#affected training cells, pi (l_e / res)^2), the number of cells
-  sharing the error within ``error_correlation_length_m`` l_e (an effective-sample-size
-  correction). Far from any uncertain cell f_obj = f_free and the term vanishes; next to a
-  transparent or specular part it keeps the GPIS uncertain there (section III-B (a), (b)).
-* discretisation (off by default, ``discretisation_weight``): resolution^2 / 12. The grid's
-  boundary quantisation is a systematic, spatially correlated error; entered as white noise
-  it lets maximum likelihood choose a longer length scale that makes the GPIS over-confident
-  inside missing regions, so it is not used unless asked for.
+  only object evidence is skipped. The term is multiplied by n_eff = min(#affected training
+  cells, pi (l_e / res)^2) (``error_correlation_length_m`` l_e, an effective-sample-size
+  correction) and **capped in extent**: it reaches only cells within ``propagation_radius_m`` of
+  U_c (far cells' SDF is decided by certain surface nearer to them; without the cap a large
+  missing region raised far cells to (90 mm)^2).
+* discretisation (off by default, ``discretisation_weight``): resolution^2 / 12.
 
 Missing cells (excluded from training) carry at least ``disagreement_variance_m2`` so that the
 published map never shows them as reliable; the GP does not use these values.
 
-All points are metric (x, y) in the camera frame at the table depth; see
-:class:`~gpis_grasp_ros.core.grid.GridGeometry` for the array conventions.
+Grid (x, y) are table-frame metres (:class:`~gpis_grasp_ros.core.grid.GridGeometry`; for a
+top-down camera the camera's x, y at the table depth).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from scipy.special import ndtr
 
 from gpis_grasp_ros.core.grid import GridGeometry
-from gpis_grasp_ros.core.noise_model import axial_variance, quantisation_step
+from gpis_grasp_ros.core.noise_model import CARMINE, SensorModel, effective_frame_count
 from gpis_grasp_ros.core.sdf import signed_distance
+from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
+
+TARGET_MODES = ('largest', 'nearest_center', 'pixel', 'table')
 
 
 @dataclass(frozen=True)
@@ -109,46 +120,104 @@ class CameraIntrinsics:
         if self.width < 1 or self.height < 1:
             raise ValueError(f'image size must be positive, got {self.width} x {self.height}')
 
+    def rays(self) -> np.ndarray:
+        """(H, W, 3) camera-frame rays ((u - cx) / fx, (v - cy) / fy, 1) of every pixel."""
+        u = (np.arange(self.width, dtype=np.float64) - self.cx) / self.fx
+        v = (np.arange(self.height, dtype=np.float64) - self.cy) / self.fy
+        uu, vv = np.meshgrid(u, v)
+        return np.stack([uu, vv, np.ones_like(uu)], axis=-1)
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Camera-frame points (..., 3) (m) → pixel coordinates (..., 2) as (u, v)."""
+        p = np.asarray(points, dtype=np.float64)
+        z = p[..., 2]
+        return np.stack([self.cx + self.fx * p[..., 0] / z, self.cy + self.fy * p[..., 1] / z], axis=-1)
+
+
+def _box(value: Sequence[float] | None, name: str) -> tuple[float, float, float, float] | None:
+    if value is None:
+        return None
+    box = tuple(float(v) for v in value)
+    if len(box) != 4 or not all(math.isfinite(v) for v in box) or box[2] <= box[0] or box[3] <= box[1]:
+        raise ValueError(f'{name} must be (min_x, min_y, max_x, max_y) with max > min, got {value!r}')
+    return box
+
 
 @dataclass(frozen=True)
 class SensingParams:
     """Settings of :func:`segment_frames` (lengths in metres, colours in 0-255 RGB units)."""
 
     grid_size: int = 25  # M, cells per side of the square grid
-    margin: float = 0.2  # free margin on each side, fraction of the object's larger bbox side
-    table_depth_m: float | None = None  # known table depth (fronto-parallel); None = fit a plane to the border
-    table_color: tuple[float, float, float] | None = None  # known table RGB; None = median of the border
-    border_px: int = 8  # width of the image border band used to estimate the table
-    height_threshold: float = 0.003  # depth mask: height above the table (~6 sigma of a 10-frame average)
-    color_threshold: float = 0.0  # RGB mask: distance from the table colour; <= 0 = adaptive (docstring)
-    color_threshold_min: float = 20.0  # adaptive threshold: max(this, median + color_mad_factor x MAD of border)
+    margin: float = 0.2  # free margin on each side, fraction of the object's larger footprint side
+    sensor: SensorModel = field(default_factory=lambda: CARMINE)  # depth-noise model (noise_model)
+    table_plane: tuple[float, float, float, float] | None = None  # (a, b, c, d) camera frame; None = fit
+    table_depth_m: float | None = None  # known fronto-parallel table depth (= table_plane (0, 0, -1, z))
+    table_color: tuple[float, float, float] | None = None  # known table RGB; None = median of the plane inliers
+    roi_px: tuple[float, float, float, float] | None = None  # (u_min, v_min, u_max, v_max) pixel box, inclusive
+    roi_table: tuple[float, float, float, float] | None = None  # (x_min, y_min, x_max, y_max) table frame, m
+    target: str = 'largest'  # 'largest', 'nearest_center', 'pixel' or 'table' (see target_point)
+    target_point: tuple[float, float] | None = None  # (u, v) px for 'pixel', (x, y) m table frame for 'table'
+    target_tolerance_m: float = 0.01  # a target point this close to a component selects it
+    max_opening_m: float = 0.09  # refuse a target wider than this in every direction (0 = no check)
+    max_tilt_deg: float = 75.0  # a fitted plane tilted more than this is edge-on: refused
+    plane_band_sigmas: float = 3.0  # plane inlier band: this x sigma_z of the sensor ...
+    plane_band_floor_m: float = 0.002  # ... but at least this (m)
+    min_plane_fraction: float = 0.2  # the table must hold this fraction of the valid points
+    border_px: int = 2  # a target reaching within this many pixels of the image edge is cut by the border
+    height_threshold: float = 0.003  # depth mask: height above the table (m), at least 2 x plane RMS
+    max_object_height_m: float = 0.4  # evidence higher above the table is not on the table (arms, people)
+    color_threshold: float = 0.0  # colour mask: shadow-line distance from the table colour; <= 0 = adaptive
+    color_threshold_min: float = 20.0  # adaptive threshold: max(this, median + color_mad_factor x MAD)
     color_mad_factor: float = 5.0
-    color_sigma: float = 0.0  # width of the soft colour ramp; <= 0 = adaptive, max(2, MAD of the border)
+    color_sigma: float = 0.0  # width of the soft colour ramp; <= 0 = adaptive, max(2, MAD of the inliers)
     depth_floor_variance: float = 0.02  # trust of the depth mask in the inverse-variance weights
     color_floor_variance: float = 0.05  # trust of the RGB mask (higher = trusted less)
     morph_kernel_px: int = 3  # opening/closing kernel (ellipse) of the mask clean-up, 0 = off
     min_valid_returns: int = 1  # fewer valid returns than this = missing pixel
-    min_object_area_px: int = 30  # smaller evidence components are discarded
-    min_component_fraction: float = 0.05  # ... and components smaller than this x the largest
-    missing_cell_fraction: float = 0.5  # a cell is missing above this fraction of missing area
+    min_object_area_px: int = 30  # smaller evidence components (pixels) are specks
+    min_object_area_m2: float = 1e-4  # ... and smaller table-plane areas (m^2)
+    missing_cell_fraction: float = 0.5  # a cell is missing above this fraction of missing pixels
     uncertainty_threshold: float = 0.5  # rho above which a cell's occupancy is uncertain
-    unobserved_variance_m2: float = 1e-5  # SDF variance of grid cells outside the image (assumed table)
+    unobserved_variance_m2: float = 1e-5  # SDF variance of cells not seen (outside the image, occluded)
     disagreement_variance_m2: float = 1e-4  # SDF variance (m^2) per unit disagreement rho
     alternative_weight: float = 0.25  # weight of (f_obj - f_free)^2 in the SDF noise
     error_correlation_length_m: float = 0.01  # extent over which propagated SDF errors are shared (m)
-    discretisation_weight: float = 0.0  # weight of resolution^2 / 12 in the SDF noise (0 = off, see docstring)
+    propagation_radius_m: float = 0.03  # propagated SDF variance reaches this far from its cause (m)
+    discretisation_weight: float = 0.0  # weight of resolution^2 / 12 in the SDF noise (0 = off)
 
     def __post_init__(self) -> None:
         if self.grid_size < 3:
             raise ValueError(f'grid_size must be >= 3, got {self.grid_size}')
         if self.margin < 0:
             raise ValueError('margin must be >= 0')
-        if self.border_px < 1:
-            raise ValueError('border_px must be >= 1')
+        if self.border_px < 0:
+            raise ValueError('border_px must be >= 0')
         if not self.height_threshold > 0:
             raise ValueError(f'height_threshold must be a positive number of metres, got {self.height_threshold}')
         if self.depth_floor_variance <= 0 or self.color_floor_variance <= 0:
             raise ValueError('mask floor variances must be positive')
+        if not isinstance(self.sensor, SensorModel):
+            raise ValueError(f'sensor must be a SensorModel, got {type(self.sensor).__name__}')
+        if self.table_plane is not None:
+            plane = tuple(float(v) for v in self.table_plane)
+            if len(plane) != 4:
+                raise ValueError(f'table_plane must be (a, b, c, d), got {self.table_plane!r}')
+            TableFrame.from_plane(*plane)  # validates
+            object.__setattr__(self, 'table_plane', plane)
+        object.__setattr__(self, 'roi_px', _box(self.roi_px, 'roi_px'))
+        object.__setattr__(self, 'roi_table', _box(self.roi_table, 'roi_table'))
+        if self.target not in TARGET_MODES:
+            raise ValueError(f"target must be one of {list(TARGET_MODES)}, got '{self.target}'")
+        if self.target in ('pixel', 'table'):
+            point = None if self.target_point is None else tuple(float(v) for v in self.target_point)
+            if point is None or len(point) != 2 or not all(math.isfinite(v) for v in point):
+                raise ValueError(f"target '{self.target}' needs target_point = two finite numbers, "
+                                 f'got {self.target_point!r}')
+            object.__setattr__(self, 'target_point', point)
+        if not 0 < self.max_tilt_deg < 90:
+            raise ValueError(f'max_tilt_deg must be in (0, 90), got {self.max_tilt_deg}')
+        if self.max_opening_m < 0 or self.propagation_radius_m <= 0 or self.target_tolerance_m < 0:
+            raise ValueError('max_opening_m and target_tolerance_m must be >= 0, propagation_radius_m > 0')
 
 
 @dataclass
@@ -158,26 +227,32 @@ class SensingResult:
     occupancy: np.ndarray  # (M, M) float in [0, 1], probability of object
     noise_variance: np.ndarray  # (M, M) m^2, observation-noise variance of each cell's SDF value
     missing: np.ndarray  # (M, M) bool, mostly no valid depth return (object in occupancy, not trained)
-    geometry: GridGeometry  # z = table depth (m)
-    table_depth: float  # m, table plane depth at the grid centre
+    geometry: GridGeometry  # in the table plane: rotation = table frame, z = plane offset d (m)
+    table_depth: float  # m, the plane's distance from the camera (d; the table depth for a top-down camera)
     train_mask: np.ndarray  # (M, M) bool, cells used to train the GPIS (= not missing)
-    observed: np.ndarray  # (M, M) bool, cells covered by the image (the others are assumed table)
+    observed: np.ndarray  # (M, M) bool, cells seen (the others - outside the image, occluded - are assumed table)
+    occluded: np.ndarray  # (M, M) bool, in the image but hidden behind something above the table
     uncertain: np.ndarray  # (M, M) bool, missing or masks disagree (rho > uncertainty_threshold)
     disagreement: np.ndarray  # (M, M) float rho in [0, 1]
+    table: TableFrame  # fitted (or given) table plane, camera frame
     table_color: np.ndarray  # (3,) RGB
-    color_threshold: float  # RGB distance threshold used (given or adaptive)
+    color_threshold: float  # colour distance threshold used (given or adaptive)
+    height_threshold: float  # m, depth-evidence threshold used
+    effective_frames: float  # n_eff, independent frames the average is worth
+    objects_seen: int  # evidence components on the table (the target and the others)
     # pixel level
     mean_depth: np.ndarray  # (H, W) m, NaN where missing
     valid_count: np.ndarray  # (H, W) int, valid returns per pixel
-    height: np.ndarray  # (H, W) m above the table, NaN where missing
+    height: np.ndarray  # (H, W) m above the table along its normal, NaN where missing
     depth_mask: np.ndarray  # (H, W) bool
     rgb_mask: np.ndarray  # (H, W) bool
     missing_mask: np.ndarray  # (H, W) bool
-    object_mask: np.ndarray  # (H, W) bool, kept evidence components
+    object_mask: np.ndarray  # (H, W) bool, the target's evidence pixels
+    labels_px: np.ndarray  # (H, W) int, component of each evidence pixel (0 = none)
     occupancy_px: np.ndarray  # (H, W) float
     noise_px: np.ndarray  # (H, W) m^2, depth + disagreement terms, NaN where missing
     disagreement_px: np.ndarray  # (H, W) float rho
-    bbox_px: tuple[int, int, int, int]  # (u_min, v_min, u_max, v_max) of the object, inclusive
+    bbox_px: tuple[int, int, int, int]  # (u_min, v_min, u_max, v_max) of the target, inclusive
     intrinsics: CameraIntrinsics
 
     @property
@@ -248,30 +323,60 @@ def frames_from_clouds(xyz: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np
     return col, depth, CameraIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h)
 
 
-def _fit_table_plane(depth: np.ndarray, border: np.ndarray) -> np.ndarray:
-    """Robust least-squares plane z = a u + b v + c (m) through the valid border depths → (H, W)."""
-    h, w = depth.shape
-    vv, uu = np.nonzero(border & np.isfinite(depth))
-    if vv.size < 20:
-        raise ValueError(f'only {vv.size} valid depth returns in the image border: cannot estimate the table '
-                         '(crop the image with some table around the object, or give table_depth_m)')
-    zz = depth[vv, uu]
-    design = np.stack([uu, vv, np.ones_like(uu)], axis=1).astype(np.float64)
-    inlier = np.ones(zz.size, dtype=bool)
-    coef = np.array([0.0, 0.0, float(np.median(zz))])
-    for _ in range(5):
-        if inlier.sum() < 3:
-            break
-        coef, *_ = np.linalg.lstsq(design[inlier], zz[inlier], rcond=None)
-        resid = zz - design @ coef
-        mad = 1.4826 * np.median(np.abs(resid[inlier] - np.median(resid[inlier])))
-        tol = max(3.0 * mad, 3.0 * float(math.sqrt(axial_variance(coef[2]))))
-        new = np.abs(resid) <= tol
-        if np.array_equal(new, inlier):
-            break
-        inlier = new
-    u_grid, v_grid = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    return coef[0] * u_grid + coef[1] * v_grid + coef[2]
+# ----------------------------------------------------------------------------------------------
+# table, colour and evidence
+
+def _table_frame(points: np.ndarray, valid: np.ndarray, params: SensingParams) -> TableFrame:
+    """Given or fitted table plane (module docstring, step 2)."""
+    if params.table_plane is not None:
+        frame = TableFrame.from_plane(*params.table_plane)
+    elif params.table_depth_m is not None:
+        if not (math.isfinite(params.table_depth_m) and params.table_depth_m > 0):
+            raise ValueError(f'table_depth_m must be positive metres, got {params.table_depth_m}')
+        frame = TableFrame.from_plane(0.0, 0.0, -1.0, float(params.table_depth_m))
+    else:
+        return fit_table_plane(points[valid], params.sensor, band_sigmas=params.plane_band_sigmas,
+                               band_floor_m=params.plane_band_floor_m, min_inlier_fraction=params.min_plane_fraction,
+                               max_tilt_deg=params.max_tilt_deg)
+    if frame.tilt_deg > params.max_tilt_deg:
+        raise ValueError(f'the given table plane is seen at {frame.tilt_deg:.0f} degrees (more than '
+                         f'{params.max_tilt_deg:.0f}): edge-on')
+    return frame
+
+
+def shadow_line_distance(rgb: np.ndarray, table_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (0-255 units) of colours ``(..., 3)`` from the table's shadow line {alpha t, 0 <= alpha <= 1},
+    and the brightness ratio alpha* = x.t / |t|^2 of each colour.
+
+    A shadow scales the table colour t by alpha < 1 (same chromaticity) and is at distance ~0; a
+    brighter colour is measured from t itself; a tint or another hue is off the line.
+    """
+    t = np.asarray(table_rgb, dtype=np.float64)
+    ratio = (rgb @ t) / max(float(t @ t), 1e-9)
+    alpha = np.clip(ratio, 0.0, 1.0)
+    return np.linalg.norm(rgb - alpha[..., None] * t, axis=-1), ratio
+
+
+def _colour_model(rgb_mean: np.ndarray, inlier: np.ndarray,
+                  params: SensingParams) -> tuple[np.ndarray, float, float, float]:
+    """Table colour (median of the plane inliers), the adaptive threshold/ramp of the colour test and the
+    brightness ratio below which a colour on the shadow line is "darker than the table" (shadow or a
+    dark object of the table's hue: colour cannot tell, depth decides)."""
+    samples = rgb_mean[inlier]
+    if samples.shape[0] > 50000:
+        samples = samples[np.random.default_rng(0).choice(samples.shape[0], 50000, replace=False)]
+    if params.table_color is not None:
+        table_rgb = np.asarray(params.table_color, dtype=np.float64).reshape(3)
+    else:
+        table_rgb = np.median(samples, axis=0)
+    dist, ratio = shadow_line_distance(samples, table_rgb)
+    mad = 1.4826 * float(np.median(np.abs(dist - np.median(dist))))
+    c_thr = (float(params.color_threshold) if params.color_threshold > 0
+             else max(params.color_threshold_min, float(np.median(dist)) + params.color_mad_factor * mad))
+    c_sigma = float(params.color_sigma) if params.color_sigma > 0 else max(2.0, mad)
+    ratio_mad = 1.4826 * float(np.median(np.abs(ratio - np.median(ratio))))
+    dark_ratio = float(np.median(ratio)) - max(0.1, params.color_mad_factor * ratio_mad)
+    return table_rgb, c_thr, c_sigma, dark_ratio
 
 
 def _morph_clean(prob: np.ndarray, size: int) -> np.ndarray:
@@ -285,45 +390,145 @@ def _morph_clean(prob: np.ndarray, size: int) -> np.ndarray:
     return img.astype(np.float64)
 
 
-def _keep_components(evidence: np.ndarray, params: SensingParams) -> np.ndarray:
-    """Evidence components large enough to be (part of) the object."""
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(evidence.astype(np.uint8), connectivity=8)
-    if count <= 1:
-        return np.zeros_like(evidence, dtype=bool)
-    areas = stats[1:, cv2.CC_STAT_AREA]
-    keep_min = max(params.min_object_area_px, params.min_component_fraction * areas.max())
-    keep = np.zeros(count, dtype=bool)
-    keep[1:] = areas >= keep_min
-    return keep[labels]
+# ----------------------------------------------------------------------------------------------
+# components in the table plane and the target
+
+@dataclass
+class _Raster:
+    """Table-plane raster of the evidence: cell (ix, iy) covers origin + [ix, ix+1) x [iy, iy+1) x res."""
+
+    origin: np.ndarray  # (2,) m
+    res: float
+    labels: np.ndarray  # (ny, nx) int32 component labels after closing (0 = none)
+
+    def cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        idx = np.floor((np.asarray(xy) - self.origin) / self.res)
+        ny, nx = self.labels.shape
+        ok = np.isfinite(idx).all(axis=-1) & (idx[..., 0] >= 0) & (idx[..., 0] < nx) & (idx[..., 1] >= 0) \
+            & (idx[..., 1] < ny)
+        idx = np.where(ok[..., None], idx, 0).astype(np.int64)
+        return idx[..., 0], idx[..., 1], ok
 
 
-def _cell_average(maps: list[np.ndarray], intr: CameraIntrinsics, geometry: GridGeometry,
-                  z_table: float) -> tuple[list[np.ndarray], np.ndarray]:
-    """Average pixel maps over each grid cell's area (bilinear sub-sampling), plus the in-image fraction."""
-    m_w, m_h, res = geometry.width, geometry.height, geometry.resolution
-    px_per_cell = res * max(intr.fx, intr.fy) / z_table
-    s = max(2, int(math.ceil(px_per_cell)))
-    offs = (np.arange(s) + 0.5) / s
-    xs = geometry.origin_x + (np.arange(m_w)[:, None] + offs[None, :]).ravel() * res
-    ys = geometry.origin_y + (np.arange(m_h)[:, None] + offs[None, :]).ravel() * res
-    map_u = (intr.cx + xs * intr.fx / z_table).astype(np.float32)
-    map_v = (intr.cy + ys * intr.fy / z_table).astype(np.float32)
-    map_x, map_y = np.meshgrid(map_u, map_v)
+def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, inlier_xy: np.ndarray,
+                      footprint_m: float) -> tuple[_Raster, np.ndarray]:
+    """Rasterise the evidence pixels' feet over the table's extent and label connected components.
 
-    def sample(img: np.ndarray) -> np.ndarray:
-        out = cv2.remap(img.astype(np.float32), map_x, map_y, interpolation=cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-        return out.astype(np.float64).reshape(m_h, s, m_w, s)
+    Returns the raster and the per-pixel labels (0 = not evidence or off the table)."""
+    lo, hi = inlier_xy.min(axis=0), inlier_xy.max(axis=0)
+    res = max(1e-3, 2.0 * footprint_m)
+    while np.prod((hi - lo) / res) > 4e6:
+        res *= 1.5
+    nx, ny = (int(v) + 1 for v in np.ceil((hi - lo) / res))
+    raster = _Raster(lo, res, np.zeros((ny, nx), np.int32))
+    # the table's extent: convex hull of its inliers (in raster cell units)
+    hull = cv2.convexHull(((inlier_xy - lo) / res).astype(np.float32))
+    extent = np.zeros((ny, nx), np.uint8)
+    cv2.fillConvexPoly(extent, np.round(hull).astype(np.int32), 1)
+    extent = cv2.erode(extent, np.ones((5, 5), np.uint8))  # the rounded hull's rim (2 cells) is not surely table
+    ix, iy, ok = raster.cell(foot_xy)
+    on_table = ok & (extent[iy, ix] > 0)
+    use = evidence & on_table
+    marks = np.zeros((ny, nx), np.uint8)
+    marks[iy[use], ix[use]] = 1
+    marks = cv2.morphologyEx(marks, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    _, labels = cv2.connectedComponents(marks, connectivity=8)
+    raster.labels = labels.astype(np.int32)
+    px_labels = np.where(use, raster.labels[iy, ix], 0)
+    return raster, px_labels
 
-    inside_sub = sample(np.ones((intr.height, intr.width)))
-    inside = inside_sub.mean(axis=(1, 3))
-    out = []
-    for img in maps:
-        sub = sample(img)
-        total = sub.sum(axis=(1, 3))
-        weight = inside_sub.sum(axis=(1, 3))
-        out.append(np.where(weight > 0, total / np.maximum(weight, 1e-12), 0.0))
-    return out, inside
+
+def minimum_width(xy: np.ndarray) -> float:
+    """Smallest extent (m) of points ``(K, 2)`` over all directions (exact: the hull's edge directions)."""
+    pts = np.asarray(xy, dtype=np.float64)
+    if pts.shape[0] < 3:
+        return 0.0
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    if hull.shape[0] < 3:
+        return 0.0
+    edges = np.roll(hull, -1, axis=0) - hull
+    length = np.linalg.norm(edges, axis=1)
+    edges, starts = edges[length > 0], hull[length > 0]
+    normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1) / np.linalg.norm(edges, axis=1)[:, None]
+    extent = np.abs((hull[None, :, :] - starts[:, None, :]) @ normals[..., None])[..., 0].max(axis=1)
+    return float(extent.min())
+
+
+def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
+                   intr: CameraIntrinsics) -> tuple[int, int]:
+    """Label of the target component and the number of objects seen (module docstring, step 5)."""
+    n_lab = int(raster.labels.max()) + 1
+    px_count = np.bincount(px_labels.ravel(), minlength=n_lab)
+    area_m2 = np.bincount(raster.labels.ravel(), minlength=n_lab) * raster.res ** 2
+    kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2))[0]
+    kept = kept[kept > 0]
+    if kept.size == 0:
+        raise ValueError(f'no object found on the table: no region of at least {params.min_object_area_px} px and '
+                         f'{params.min_object_area_m2 * 1e4:.1f} cm^2 stands out from the table in depth or colour '
+                         'or lacks depth (empty table?)')
+    if params.target == 'largest':
+        return int(kept[np.argmax(area_m2[kept])]), int(kept.size)
+    if params.target == 'nearest_center':
+        vv, uu = np.nonzero(px_labels > 0)
+        lab = px_labels[vv, uu]
+        n = np.bincount(lab, minlength=n_lab).astype(np.float64)
+        cu = np.bincount(lab, uu, minlength=n_lab) / np.maximum(n, 1)
+        cv = np.bincount(lab, vv, minlength=n_lab) / np.maximum(n, 1)
+        d = np.hypot(cu[kept] - (intr.width - 1) / 2, cv[kept] - (intr.height - 1) / 2)
+        return int(kept[np.argmin(d)]), int(kept.size)
+    if params.target == 'pixel':
+        u, v = (int(round(c)) for c in params.target_point)
+        if not (0 <= u < intr.width and 0 <= v < intr.height):
+            raise ValueError(f'target pixel ({u}, {v}) is outside the {intr.width} x {intr.height} image')
+        point = foot_xy[v, u]
+        if not np.isfinite(point).all():
+            raise ValueError(f'target pixel ({u}, {v}) does not look at the table (its ray misses the plane)')
+        what = f'target pixel ({u}, {v})'
+    else:
+        point = np.asarray(params.target_point, dtype=np.float64)
+        what = f'target point ({point[0]:.3f}, {point[1]:.3f}) m in the table frame'
+    iy, ix = np.nonzero(np.isin(raster.labels, kept))
+    centres = raster.origin + (np.stack([ix, iy], axis=1) + 0.5) * raster.res
+    dist = np.linalg.norm(centres - point, axis=1)
+    if dist.size == 0 or dist.min() > params.target_tolerance_m + raster.res:
+        near = '' if dist.size == 0 else f' (nearest object {dist.min() * 1000:.0f} mm away)'
+        raise ValueError(f'{what} is on no object{near}: {kept.size} object(s) seen on the table')
+    return int(raster.labels[iy[np.argmin(dist)], ix[np.argmin(dist)]]), int(kept.size)
+
+
+def _check_target(target_px: np.ndarray, target_xy: np.ndarray, target_raster: np.ndarray, raster_res: float,
+                  params: SensingParams, intr: CameraIntrinsics) -> None:
+    """Refuse a target cut by the image (or pixel ROI) border, or with no part narrow enough for the gripper.
+
+    Too wide = the footprint's convex hull is wider than ``max_opening_m`` in every direction *and*
+    its largest inscribed disc is wider too (a toy plane's wings are wide but its fuselage fits)."""
+    vs, us = np.nonzero(target_px)
+    b = params.border_px
+    u_lo, v_lo, u_hi, v_hi = (0, 0, intr.width - 1, intr.height - 1) if params.roi_px is None else \
+        (max(0, params.roi_px[0]), max(0, params.roi_px[1]), min(intr.width - 1, params.roi_px[2]),
+         min(intr.height - 1, params.roi_px[3]))
+    if us.min() < u_lo + b or vs.min() < v_lo + b or us.max() > u_hi - b or vs.max() > v_hi - b:
+        raise ValueError(f'the target (pixels u {us.min()}..{us.max()}, v {vs.min()}..{vs.max()}) is cut by the image '
+                         'border: its shape is not fully seen (move the camera or the object, or choose another '
+                         'target)')
+    if params.max_opening_m > 0:
+        width = minimum_width(target_xy)
+        if width > params.max_opening_m:
+            padded = np.pad(target_raster.astype(np.uint8), 1)
+            inscribed = 2.0 * float(cv2.distanceTransform(padded, cv2.DIST_L2, 5).max()) * raster_res
+            if inscribed > params.max_opening_m:
+                raise ValueError(f'the target is {width * 1000:.0f} mm wide in its narrowest direction and no part of '
+                                 f'it is narrower than {inscribed * 1000:.0f} mm: more than the gripper opening '
+                                 f'max_opening_m = {params.max_opening_m * 1000:.0f} mm')
+
+
+# ----------------------------------------------------------------------------------------------
+# grid accumulation and the noise map
+
+def _accumulate(cell: np.ndarray, maps: list[np.ndarray], n_cells: int) -> list[np.ndarray]:
+    """Per-cell sums of pixel maps (``cell`` = flat cell index, -1 = not in the grid)."""
+    ok = cell >= 0
+    return [np.bincount(cell[ok], weights=m[ok], minlength=n_cells) for m in maps]
 
 
 def _propagation_variance(occ_bin: np.ndarray, uncertain: np.ndarray, train: np.ndarray, geometry: GridGeometry,
@@ -335,13 +540,14 @@ def _propagation_variance(occ_bin: np.ndarray, uncertain: np.ndarray, train: np.
     res = geometry.resolution
     n_local = math.pi * (params.error_correlation_length_m / res) ** 2
     count, labels = cv2.connectedComponents(uncertain.astype(np.uint8), connectivity=8)
-    # if the component is all there is, "free" means no surface in the grid: distances of the grid size
     for c in range(1, count):
         comp = labels == c
         rest = occ_bin & ~comp
         if not rest.any():  # the component is the only object evidence: "free" would mean no object at all
             continue
         delta = signed_distance(occ_bin | comp, res) - signed_distance(rest, res)
+        reach = cv2.distanceTransform((~comp).astype(np.uint8), cv2.DIST_L2, 5) * res
+        delta = np.where(reach <= params.propagation_radius_m, delta, 0.0)
         affected = int(np.count_nonzero((np.abs(delta) > 1e-12) & train))
         n_eff = max(1.0, min(float(affected), n_local))
         out += params.alternative_weight * n_eff * delta ** 2
@@ -351,24 +557,7 @@ def _propagation_variance(occ_bin: np.ndarray, uncertain: np.ndarray, train: np.
 # ----------------------------------------------------------------------------------------------
 # main entry point
 
-def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: np.ndarray | Sequence[np.ndarray],
-                   intrinsics: CameraIntrinsics, params: SensingParams = SensingParams(),
-                   frame_id: str = '') -> SensingResult:
-    """Segment an object from N RGBD frames into an M x M occupancy grid and SDF noise map (III-B).
-
-    Args:
-        rgb_frames: ``(N, H, W, 3)`` uint8 RGB images (or one ``(H, W, 3)`` image).
-        depth_frames: ``(N, H, W)`` float depth in metres, NaN (or <= 0) = no return.
-        intrinsics: pinhole intrinsics of the (registered) images, pixels.
-        params: thresholds and grid settings (see :class:`SensingParams`).
-        frame_id: sensor frame stored in the returned geometry.
-
-    Returns:
-        :class:`SensingResult`; see the module docstring for every map.
-
-    Raises:
-        ValueError: wrong dtype or shape, no valid depth, no table in the border, no object.
-    """
+def _validate_inputs(rgb_frames, depth_frames, intrinsics) -> tuple[np.ndarray, np.ndarray]:
     if not isinstance(intrinsics, CameraIntrinsics):
         raise ValueError(f'intrinsics must be a CameraIntrinsics, got {type(intrinsics).__name__}')
     rgb = _as_frames(rgb_frames, 'rgb_frames', 3)
@@ -381,114 +570,197 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     if rgb.shape[:3] != depth_in.shape:
         raise ValueError(f'rgb_frames {rgb.shape[:3]} and depth_frames {depth_in.shape} differ in number of '
                          'frames or image size')
-    n_frames, h, w = depth_in.shape
-    if (h, w) != (intrinsics.height, intrinsics.width):
-        raise ValueError(f'images are {w} x {h} but the intrinsics are for {intrinsics.width} x {intrinsics.height}')
+    if depth_in.shape[1:] != (intrinsics.height, intrinsics.width):
+        raise ValueError(f'images are {depth_in.shape[2]} x {depth_in.shape[1]} but the intrinsics are for '
+                         f'{intrinsics.width} x {intrinsics.height}')
+    return rgb, depth_in
 
-    # 1. averaging over valid returns
+
+def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: np.ndarray | Sequence[np.ndarray],
+                   intrinsics: CameraIntrinsics, params: SensingParams = SensingParams(),
+                   frame_id: str = '') -> SensingResult:
+    """Segment the target object from N RGBD frames into an M x M occupancy grid and SDF noise map (III-B).
+
+    Args:
+        rgb_frames: ``(N, H, W, 3)`` uint8 RGB images (or one ``(H, W, 3)`` image).
+        depth_frames: ``(N, H, W)`` float depth in metres, NaN (or <= 0) = no return.
+        intrinsics: pinhole intrinsics of the (registered) images, pixels.
+        params: thresholds, table, target and grid settings (see :class:`SensingParams`).
+        frame_id: sensor frame stored in the returned geometry.
+
+    Returns:
+        :class:`SensingResult`; see the module docstring for every map. The grid lies in the
+        table plane (``geometry.rotation`` = table frame).
+
+    Raises:
+        ValueError: wrong dtype or shape, no valid depth, no table plane (or seen edge-on), no object
+            on the table, target point on no object, target cut by the image border or too wide.
+    """
+    rgb, depth_in = _validate_inputs(rgb_frames, depth_frames, intrinsics)
+    n_frames, h, w = depth_in.shape
+
+    # 1. averaging over valid returns; independent frames measured
     depth = depth_in.astype(np.float64)
-    valid = np.isfinite(depth) & (depth > 0)
-    count = valid.sum(axis=0)
+    valid_f = np.isfinite(depth) & (depth > 0)
+    count = valid_f.sum(axis=0)
     if count.max() == 0:
         raise ValueError('depth_frames contain no valid return (all NaN or <= 0)')
-    z_sum = np.where(valid, depth, 0.0).sum(axis=0)
     missing_px = count < max(1, params.min_valid_returns)
+    valid = ~missing_px
     with np.errstate(invalid='ignore', divide='ignore'):
-        z_mean = np.where(missing_px, np.nan, z_sum / np.maximum(count, 1))
+        z_mean = np.where(valid, np.where(valid_f, depth, 0.0).sum(axis=0) / np.maximum(count, 1), np.nan)
     rgb_mean = rgb.astype(np.float64).mean(axis=0)
+    n_eff = effective_frame_count(np.where(valid_f, depth, np.nan), params.sensor) if n_frames > 1 else 1.0
+    count_eff = count * (n_eff / n_frames)
 
-    # 2. table plane and colour from the border band
-    b = min(params.border_px, max(1, min(h, w) // 4))
-    border = np.zeros((h, w), dtype=bool)
-    border[:b, :] = border[-b:, :] = border[:, :b] = border[:, -b:] = True
-    if params.table_depth_m is not None:
-        if not (math.isfinite(params.table_depth_m) and params.table_depth_m > 0):
-            raise ValueError(f'table_depth_m must be positive metres, got {params.table_depth_m}')
-        z_table_px = np.full((h, w), float(params.table_depth_m))
-    else:
-        z_table_px = _fit_table_plane(z_mean, border)
-    if params.table_color is not None:
-        table_rgb = np.asarray(params.table_color, dtype=np.float64).reshape(3)
-    else:
-        table_rgb = np.median(rgb_mean[border], axis=0)
+    # 2. table frame from the whole valid cloud
+    rays = intrinsics.rays()
+    points = rays * np.where(valid, z_mean, np.nan)[..., None]
+    table = _table_frame(points, valid, params)
+    normal = table.n
+    height = np.where(valid, points @ normal + table.offset_m, np.nan)
+    z_safe = np.where(valid, z_mean, table.offset_m)
+    band = np.maximum(params.plane_band_floor_m, params.plane_band_sigmas * params.sensor.sigma(z_safe))
+    inlier = valid & (np.abs(np.nan_to_num(height, nan=1.0)) <= band)
+    if inlier.sum() < 20:
+        raise ValueError(f'only {int(inlier.sum())} pixels lie on the table plane: cannot estimate the table '
+                         '(check table_plane / table_depth_m, or the depth image)')
+    rms = float(np.sqrt(np.mean(height[inlier] ** 2)))
+    h_thr = max(params.height_threshold, 2.0 * rms)
 
-    # 3. soft depth and colour evidence
-    height = z_table_px - z_mean
-    z_safe = np.where(missing_px, z_table_px, z_mean)
-    var_z = (axial_variance(z_safe) + quantisation_step(z_safe) ** 2 / 12.0) / np.maximum(count, 1)
-    p_d = np.where(missing_px, 0.0, ndtr((np.nan_to_num(height) - params.height_threshold) / np.sqrt(var_z)))
-    color_dist = np.linalg.norm(rgb_mean - table_rgb[None, None, :], axis=-1)
-    # adaptive threshold and ramp: above the table's own colour variation (texture, shading, noise)
-    border_dist = color_dist[border]
-    mad = 1.4826 * float(np.median(np.abs(border_dist - np.median(border_dist))))
-    c_thr = (float(params.color_threshold) if params.color_threshold > 0
-             else max(params.color_threshold_min, float(np.median(border_dist)) + params.color_mad_factor * mad))
-    c_sigma = float(params.color_sigma) if params.color_sigma > 0 else max(2.0, mad)
-    p_c = ndtr((color_dist - c_thr) / c_sigma)
+    # 3. soft depth and colour evidence (the colour test ignores shadows)
+    var_z = params.sensor.variance(z_safe) / np.maximum(count_eff, 1.0)
+    ray_n = np.abs(rays @ normal)  # height error per unit depth error along the ray
+    s_h = np.sqrt(var_z) * np.maximum(ray_n, 1e-3)
+    p_d = np.where(valid, ndtr((np.nan_to_num(height) - h_thr) / s_h), 0.0)
+    table_rgb, c_thr, c_sigma, dark_ratio = _colour_model(rgb_mean, inlier, params)
+    c_dist, c_ratio = shadow_line_distance(rgb_mean, table_rgb)
+    p_c = ndtr((c_dist - c_thr) / c_sigma)
     p_d = _morph_clean(p_d, params.morph_kernel_px)
     p_c = _morph_clean(p_c, params.morph_kernel_px)
+    # darker than the table on its shadow line: shadow or a dark object of the table's hue - colour
+    # cannot tell, so it defers to depth (no evidence either way, no disagreement)
+    p_c = np.where((c_ratio < dark_ratio) & (p_c < 0.5), p_d, p_c)
 
-    # 4. inverse-variance combination, missing = object, clutter removal
+    # 4. inverse-variance combination, missing = object
     v_d = p_d * (1.0 - p_d) + params.depth_floor_variance
     v_c = p_c * (1.0 - p_c) + params.color_floor_variance
     occ = (p_d / v_d + p_c / v_c) / (1.0 / v_d + 1.0 / v_c)
-    rho = np.abs(p_d - p_c)  # pixel-level disagreement (debug map); the grid uses cell averages below
+    rho = np.where(missing_px, 0.0, np.abs(p_d - p_c))
     occ = np.where(missing_px, 1.0, occ)
-    rho = np.where(missing_px, 0.0, rho)
-    evidence = (occ > 0.5) | (p_d > 0.5) | (p_c > 0.5)
+
+    # 5. orthographic feet on the table; evidence above the plane, on the table, in the ROI; the target
+    hit_points, hit = table.ray_intersection(rays)
+    foot = np.where(valid[..., None], points - np.nan_to_num(height)[..., None] * normal, hit_points)
+    foot_xy, _ = table.to_table(foot)
+    foot_xy = np.where((valid | hit)[..., None], foot_xy, np.nan)
+    evidence = (occ > 0.5) | (p_d > 0.5) | (p_c > 0.5) | missing_px
     if params.morph_kernel_px > 1:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.morph_kernel_px, params.morph_kernel_px))
         evidence = cv2.morphologyEx(evidence.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
-    object_mask = _keep_components(evidence, params)
-    if not object_mask.any():
-        raise ValueError(f'no object found: no region of at least {params.min_object_area_px} px is more than '
-                         f'{params.height_threshold * 1000:.1f} mm above the table, differs from the table colour '
-                         f'by more than {c_thr:.0f}, or lacks depth')
-    occ = np.where(object_mask, occ, 0.0)  # clutter leaves the shape; its disagreement rho stays in the noise
-    noise_px = np.where(missing_px, np.nan, var_z + params.disagreement_variance_m2 * rho)
+    h_ok = np.nan_to_num(height, nan=0.0)
+    evidence &= (h_ok > -band) & (h_ok < params.max_object_height_m) & np.isfinite(foot_xy).all(axis=-1)
+    if params.roi_px is not None:
+        u0, v0, u1, v1 = params.roi_px
+        uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+        evidence &= (uu >= u0) & (uu <= u1) & (vv >= v0) & (vv <= v1)
+    if params.roi_table is not None:
+        x0, y0, x1, y1 = params.roi_table
+        fx_, fy_ = foot_xy[..., 0], foot_xy[..., 1]
+        evidence &= (fx_ >= x0) & (fx_ <= x1) & (fy_ >= y0) & (fy_ <= y1)
+    inlier_xy = foot_xy[inlier]
+    footprint = float(np.median(z_mean[inlier])) / min(intrinsics.fx, intrinsics.fy) / max(
+        math.cos(math.radians(table.tilt_deg)), 0.3)
+    raster, px_labels = _table_components(foot_xy, evidence, inlier_xy, footprint)
+    target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics)
+    target_px = px_labels == target
+    target_xy = foot_xy[target_px]
+    _check_target(target_px, target_xy, raster.labels == target, raster.res, params, intrinsics)
 
-    # 5. square metric grid around the object, in the table plane
-    vs, us = np.nonzero(object_mask)
-    u0, u1, v0, v1 = int(us.min()), int(us.max()), int(vs.min()), int(vs.max())
-    z_t = float(z_table_px[(v0 + v1) // 2, (u0 + u1) // 2])
-    x0, x1 = (u0 - 0.5 - intrinsics.cx) * z_t / intrinsics.fx, (u1 + 0.5 - intrinsics.cx) * z_t / intrinsics.fx
-    y0, y1 = (v0 - 0.5 - intrinsics.cy) * z_t / intrinsics.fy, (v1 + 0.5 - intrinsics.cy) * z_t / intrinsics.fy
-    side = max(x1 - x0, y1 - y0) * (1.0 + 2.0 * params.margin)
+    # 6. square grid in the table plane around the target's footprint
+    lo, hi = target_xy.min(axis=0), target_xy.max(axis=0)
+    side = float(max(hi - lo)) * (1.0 + 2.0 * params.margin)
+    side = max(side, 1e-3)
     m = params.grid_size
-    geometry = GridGeometry(origin_x=0.5 * (x0 + x1) - side / 2, origin_y=0.5 * (y0 + y1) - side / 2,
-                            resolution=side / m, width=m, height=m, z=z_t, frame_id=frame_id)
-    var_depth_px = np.where(missing_px, 0.0, var_z)
-    valid_px = (~missing_px).astype(np.float64)
-    (occ_c, pd_c, pc_c, miss_c, var_c, valid_c), inside = _cell_average(
-        [occ, p_d * valid_px, p_c * valid_px, missing_px.astype(np.float64), var_depth_px, valid_px],
-        intrinsics, geometry, z_t)
-    observed = inside >= 0.5  # the rest of the grid lies outside the (cropped) image: assumed table
-    occupancy = np.clip(np.where(observed, occ_c, 0.0), 0.0, 1.0)
+    centre = 0.5 * (lo + hi)
+    geometry = table.grid(centre[0] - side / 2, centre[1] - side / 2, side / m, m, m, frame_id)
+    res = geometry.resolution
+    col = np.floor((foot_xy[..., 0] - geometry.origin_x) / res)
+    row = np.floor((foot_xy[..., 1] - geometry.origin_y) / res)
+    in_grid = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < m) & (row >= 0) & (row < m)
+    miss_t = missing_px & target_px
+    informative = in_grid & (valid | miss_t)
+    cell = np.where(informative, np.nan_to_num(row) * m + np.nan_to_num(col), -1).astype(np.int64)
+    valid_px = valid.astype(np.float64)
+    occ_t = np.where(target_px, occ, 0.0)  # other objects are not the target: table in its grid
+    sums = _accumulate(cell, [np.ones((h, w)), occ_t, p_d * valid_px, p_c * valid_px, valid_px,
+                              miss_t.astype(np.float64), np.where(valid, var_z, 0.0)], m * m)
+    n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var = (s.reshape(m, m) for s in sums)
+
+    # cells between the feet of neighbouring pixels (a grid finer than the pixels' footprint on the
+    # table): the mean of their observed 8-neighbours, if at least 3, for as many cells as a footprint spans
+    stats = [s_occ, s_pd, s_pc, s_valid, s_miss, s_var]
+    kernel3 = np.ones((3, 3), np.float32)
+    for _ in range(int(math.ceil(footprint / res))):
+        seen = (n_inf > 0).astype(np.float32)
+        n_nb = cv2.filter2D(seen, -1, kernel3, borderType=cv2.BORDER_CONSTANT)
+        fill = (n_inf == 0) & (n_nb >= 3)
+        if not fill.any():
+            break
+        for arr in stats:
+            mean = np.where(n_inf > 0, arr / np.maximum(n_inf, 1.0), 0.0).astype(np.float32)
+            arr[fill] = (cv2.filter2D(mean, -1, kernel3, borderType=cv2.BORDER_CONSTANT)[fill] / n_nb[fill])
+        n_inf[fill] = 1.0
+
+    # cells no pixel reaches: their centre's image pixel (occluded, outside the image, or a target hole)
+    empty = n_inf == 0
+    occluded = np.zeros((m, m), dtype=bool)
+    if empty.any():
+        rr, cc = np.nonzero(empty)
+        uv = intrinsics.project(geometry.to_sensor(geometry.cell_centers()[rr, cc]))
+        ui, vi = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+        ui, vi = np.clip(ui, 0, w - 1), np.clip(vi, 0, h - 1)
+        sees_table = inside & valid[vi, ui] & (np.nan_to_num(height[vi, ui]) <= h_thr)
+        sees_target_hole = inside & miss_t[vi, ui]
+        occluded[rr, cc] = inside & ~sees_table & ~sees_target_hole
+        take = sees_table | sees_target_hole
+        r2, c2, v2, u2 = rr[take], cc[take], vi[take], ui[take]
+        n_inf[r2, c2] = 1.0
+        s_occ[r2, c2] = occ_t[v2, u2]
+        s_pd[r2, c2], s_pc[r2, c2] = p_d[v2, u2] * valid_px[v2, u2], p_c[v2, u2] * valid_px[v2, u2]
+        s_valid[r2, c2], s_miss[r2, c2] = valid_px[v2, u2], miss_t[v2, u2]
+        s_var[r2, c2] = np.where(valid[v2, u2], var_z[v2, u2], 0.0)
+    observed = n_inf > 0
+    n_safe = np.maximum(n_inf, 1.0)
+    occupancy = np.clip(np.where(observed, s_occ / n_safe, 0.0), 0.0, 1.0)
+    miss_c = s_miss / n_safe
     missing = observed & (miss_c > params.missing_cell_fraction)
-    # cell disagreement from the cell-averaged evidence: a boundary cell half covered in both masks
-    # agrees (0.5 vs 0.5), a transparent cell (depth 0, colour 1) does not
     with np.errstate(invalid='ignore', divide='ignore'):
-        rho_c = np.abs(pd_c - pc_c) / valid_c
-    disagreement = np.where(observed & (valid_c > 0), np.clip(np.nan_to_num(rho_c), 0.0, 1.0), 0.0)
-    depth_var = np.where(valid_c > 0, var_c / np.maximum(valid_c, 1e-12), 0.0)
+        rho_c = np.abs(s_pd - s_pc) / s_valid
+        depth_var = np.where(s_valid > 0, s_var / s_valid, 0.0)
+    disagreement = np.where(observed & (s_valid > 0), np.clip(np.nan_to_num(rho_c), 0.0, 1.0), 0.0)
 
     # SDF noise: depth + discretisation + disagreement + propagation (module docstring)
     uncertain = missing | (disagreement > params.uncertainty_threshold)
-    noise = (depth_var + params.discretisation_weight * geometry.resolution ** 2 / 12.0
+    noise = (depth_var + params.discretisation_weight * res ** 2 / 12.0
              + params.disagreement_variance_m2 * disagreement
              + params.disagreement_variance_m2 * np.where(missing, 0.0, miss_c))
     occ_bin = occupancy >= 0.5
     if not occ_bin.any():
-        raise ValueError('no object found: the object evidence is too weak for any grid cell to be occupied '
+        raise ValueError('no object found: the target evidence is too weak for any grid cell to be occupied '
                          '(lower grid_size or the thresholds)')
     noise = np.where(observed, noise, params.unobserved_variance_m2)
     noise = noise + _propagation_variance(occ_bin, uncertain, ~missing, geometry, params)
     train_mask = ~missing
     noise = np.where(train_mask, noise, np.maximum(noise, params.disagreement_variance_m2))  # unused by the GP
+    noise_px = np.where(missing_px, np.nan, var_z + params.disagreement_variance_m2 * rho)
+    vs, us = np.nonzero(target_px)
     return SensingResult(
-        occupancy=occupancy, noise_variance=noise, missing=missing, geometry=geometry, table_depth=z_t,
-        train_mask=train_mask, observed=observed, uncertain=uncertain, disagreement=disagreement,
-        table_color=table_rgb, color_threshold=c_thr, mean_depth=z_mean, valid_count=count.astype(np.int64),
-        height=height,
-        depth_mask=p_d > 0.5, rgb_mask=p_c > 0.5, missing_mask=missing_px, object_mask=object_mask,
-        occupancy_px=occ, noise_px=noise_px, disagreement_px=rho, bbox_px=(u0, v0, u1, v1), intrinsics=intrinsics)
+        occupancy=occupancy, noise_variance=noise, missing=missing, geometry=geometry, table_depth=table.offset_m,
+        train_mask=train_mask, observed=observed, occluded=occluded, uncertain=uncertain, disagreement=disagreement,
+        table=table, table_color=table_rgb, color_threshold=c_thr, height_threshold=h_thr, effective_frames=n_eff,
+        objects_seen=objects_seen, mean_depth=z_mean, valid_count=count.astype(np.int64), height=height,
+        depth_mask=p_d > 0.5, rgb_mask=p_c > 0.5, missing_mask=missing_px, object_mask=target_px,
+        labels_px=px_labels, occupancy_px=occ, noise_px=noise_px, disagreement_px=rho,
+        bbox_px=(int(us.min()), int(vs.min()), int(us.max()), int(vs.max())), intrinsics=intrinsics)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy.ndimage import binary_dilation
@@ -224,7 +225,8 @@ def test_frames_from_clouds_recovers_intrinsics_and_depth():
     ('intrinsics', 'intrinsics'),
     ('all_nan', 'no valid return'),
     ('no_object', 'no object found'),
-    ('no_table', 'cannot estimate the table'),
+    ('no_table', 'no table plane found'),
+    ('edge_on', 'edge-on'),
     ('bad_shape', 'expected shape'),
     ('ragged', 'different shapes'),
 ])
@@ -246,9 +248,17 @@ def test_bad_input_raises_clear_value_error(case, match):
     elif case == 'no_object':
         args[0] = np.full_like(rgb, 120)
         args[1] = np.full_like(depth, TABLE_Z)
-    elif case == 'no_table':
-        args[1] = np.where(np.ones_like(depth, bool), np.nan, depth)
-        args[1][:, 100:140, 100:140] = TABLE_Z
+    elif case == 'no_table':  # a cloud without any plane: depths scattered over 0.5 ... 1.5 m
+        args[1] = np.random.default_rng(1).uniform(0.5, 1.5, depth.shape)
+    elif case == 'edge_on':  # a plane seen at 85 degrees from the optical axis (a wall, or a table edge-on)
+        tilt = np.radians(85.0)
+        normal = np.array([0.0, -np.sin(tilt), -np.cos(tilt)])
+        v, u = np.mgrid[0:intr.height, 0:intr.width]
+        rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(u.shape)], axis=-1)
+        with np.errstate(divide='ignore'):
+            z = -0.3 / (rays @ normal)
+        z = np.where((z > 0) & (z < 3.0), z, np.nan)
+        args[1] = np.repeat(z[None], depth.shape[0], axis=0)
     elif case == 'bad_shape':
         args[0] = rgb[..., :2]
     elif case == 'ragged':
@@ -264,3 +274,73 @@ def test_invalid_parameters():
         CameraIntrinsics(0.0, 570.0, 1.0, 1.0, 10, 10)
     with pytest.raises(ValueError, match='fewer than 3'):
         frames_from_clouds(np.full((1, 4, 4, 3), np.nan), np.zeros((1, 4, 4, 3), np.uint8))
+
+
+# ---------------------------------------------------------------------------------------- issue 12
+def test_shadow_is_not_transparency():
+    """Opaque box and its strong shadow on the table (darker, same chromaticity): no colour evidence and
+    no uncertain cell in the shadow, while a tinted (transparent-like) patch still is uncertain."""
+    from tilted_scene import Box, TiltedScene
+
+    box = Box(0.0, 0.0, 0.025, 0.02, 0.04)
+    scene = TiltedScene(40.0, boxes=[box], shadows=[(0.025, -0.02, 0.055, 0.02, 0.35)])
+    rgb, depth, label = scene.frames(5, seed=2)
+    result = segment_frames(rgb, depth, scene.intrinsics)
+    _, _, lab = scene.frames(1)
+    pts = scene.intrinsics.rays() * np.nanmean(depth, axis=0)[..., None]
+    xy = scene.table_xy(pts)
+    shadow_px = (lab == 0) & (xy[..., 0] > 0.03) & (xy[..., 0] < 0.05) & (np.abs(xy[..., 1]) < 0.015)
+    assert shadow_px.sum() > 150
+    assert not result.rgb_mask[shadow_px].any()
+    g = result.geometry
+    cxy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    shadow_cells = (cxy[..., 0] > 0.03) & (cxy[..., 0] < 0.05) & (np.abs(cxy[..., 1]) < 0.015)
+    assert shadow_cells.sum() >= 10
+    assert not result.uncertain[shadow_cells].any() and result.occupancy[shadow_cells].max() < 0.5
+    assert result.noise_variance[shadow_cells].max() < 1e-5
+    # the old Euclidean colour distance from the table colour would have flagged the shadow
+    old_distance = np.linalg.norm(rgb.astype(float).mean(axis=0) - result.table_color, axis=-1)
+    assert np.median(old_distance[shadow_px]) > 100
+
+
+def test_identical_repeated_frames_count_as_one():
+    rgb, depth, intr, regions, _ = make_scene(n_frames=10, tint=(0, 0, 0), specular=False)
+    independent = segment_frames(rgb, depth, intr)
+    repeated = segment_frames(np.repeat(rgb[:1], 10, axis=0), np.repeat(depth[:1], 10, axis=0), intr)
+    assert independent.effective_frames == pytest.approx(10, rel=0.25)
+    assert repeated.effective_frames == 1.0
+    solid = regions['box']
+    ratio = np.nanmedian(repeated.noise_px[solid]) / np.nanmedian(independent.noise_px[solid])
+    assert ratio == pytest.approx(independent.effective_frames, rel=0.3)  # a repeat is not 10 measurements
+
+
+def test_sensor_models():
+    from gpis_grasp_ros.core.noise_model import SensorModel, effective_frame_count
+
+    d400 = SensorModel.named('realsense_d400')
+    assert d400.sigma(1.0) == pytest.approx(0.08 / (424.0 * 0.050), rel=1e-9)  # Intel RMS formula, 3.8 mm
+    assert d400.sigma(0.5) == pytest.approx(d400.sigma(1.0) / 4)  # grows with z^2
+    assert SensorModel.named('carmine').sigma(0.7) == pytest.approx(axial_sigma(0.7))
+    custom = SensorModel('custom', 0.001, 0.0, 0.0, 0.002, 0.0, 0.0005)
+    assert custom.sigma(2.0) == pytest.approx(0.009) and custom.quantisation(2.0) == 0.0005
+    with pytest.raises(ValueError):
+        SensorModel('custom', -1.0)
+    with pytest.raises(ValueError, match='unknown sensor'):
+        SensorModel.named('kinect_v9')
+    rng = np.random.default_rng(0)
+    frames = 0.8 + d400.sigma(0.8) * rng.standard_normal((6, 40, 40))
+    assert effective_frame_count(frames, d400) == pytest.approx(6, rel=0.15)
+    two_distinct = np.concatenate([np.repeat(frames[:1], 3, axis=0), np.repeat(frames[1:2], 3, axis=0)])
+    assert effective_frame_count(two_distinct, d400) == pytest.approx(2, rel=0.25)
+
+
+def test_propagated_variance_is_capped_in_extent():
+    rgb, depth, intr, _, _ = make_scene()
+    near = segment_frames(rgb, depth, intr, SensingParams(propagation_radius_m=0.01))
+    far = segment_frames(rgb, depth, intr, SensingParams(propagation_radius_m=1.0))
+    g = near.geometry
+    dist = cv2.distanceTransform((~near.uncertain).astype(np.uint8), cv2.DIST_L2, 5) * g.resolution
+    beyond = dist > 0.01 + g.resolution
+    assert beyond.sum() > 50
+    assert near.noise_variance[beyond].max() < 1e-5
+    assert far.noise_variance[beyond].max() > 10 * near.noise_variance[beyond].max()

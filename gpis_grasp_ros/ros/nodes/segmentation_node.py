@@ -6,7 +6,16 @@ Subscribes either ``camera/depth/points`` (organized XYZRGB PointCloud2) or
 ``object/occupancy`` (nav_msgs/OccupancyGrid: 0..100, -1 = no depth return, counted as object but
 not used for GPIS training) and ``object/noise_map`` (gpis_grasp_interfaces/FloatGrid, m^2 per
 cell: variance of the cell's SDF value; NaN = not used for training), stamped with the newest
-frame's stamp and the camera frame.
+frame's stamp and the camera frame. The grids lie in the table plane: their ``info.origin`` /
+geometry carry the full pose (position and orientation) in the camera frame.
+
+Perception for a tilted head camera (issue 12, :mod:`gpis_grasp_ros.core.sensing`): robust
+table-plane fit (or ``table_plane``), region of interest (``roi_px`` / ``roi_table``), one
+``target`` object isolated in the table plane, ``sensor_model`` noise. When no grid can be made
+(no plane, plane edge-on, empty table, target point on no object, target cut by the image border
+or too wide for ``max_opening``) nothing is published; the reason is logged and published on the
+latched ``segmentation/status`` (std_msgs/String, ``'failed: <reason>'``; ``'ok: <summary>'``
+after each publication).
 """
 
 from __future__ import annotations
@@ -17,9 +26,10 @@ import numpy as np
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import String
 
 from gpis_grasp_interfaces.msg import FloatGrid
-from gpis_grasp_ros.core import pipeline, sensing
+from gpis_grasp_ros.core import noise_model, pipeline, sensing
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.ros import conversions
 from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, declare, guarded, run_node, sensor_qos
@@ -31,6 +41,60 @@ def _same_camera(a: sensing.CameraIntrinsics, b: sensing.CameraIntrinsics, tol_p
     """Intrinsics equal up to ``tol_px`` (those recovered from each cloud differ by rounding)."""
     return (a.width, a.height) == (b.width, b.height) and bool(np.allclose(
         [a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy], atol=tol_px))
+
+
+def _optional_box(values: list[float], name: str) -> tuple[float, ...] | None:
+    """A 4-number parameter where all zeros means 'not given'."""
+    values = [float(v) for v in values]
+    if len(values) != 4:
+        raise ValueError(f"parameter '{name}' must have 4 numbers (all 0 = not given), got {values}")
+    return None if not any(values) else tuple(values)
+
+
+def perception_parameters(node: Node, defaults: sensing.SensingParams) -> dict:
+    """Declare the table / target / sensor parameters (issue 12) and return them as SensingParams fields."""
+    model = declare(node, 'sensor_model', 'carmine',
+                    "depth-noise model: 'carmine' (PrimeSense), 'realsense_d400' (stereo, sigma_z ~ z^2) or "
+                    "'custom' (sensor_sigma_* / sensor_quantisation_* below)",
+                    choices=list(noise_model.SENSOR_MODELS), read_only=True)
+    custom = noise_model.SensorModel(
+        'custom',
+        declare(node, 'sensor_sigma_constant', 0.0012, "custom sensor: c0 (m) in sigma_z = c0 + c1 (z - z_ref)^2 + "
+                'c2 z^2', low=0.0, high=1.0, read_only=True),
+        declare(node, 'sensor_sigma_quadratic', 0.0019, 'custom sensor: c1 (1/m)', low=0.0, high=1.0, read_only=True),
+        declare(node, 'sensor_sigma_reference_depth', 0.4, 'custom sensor: z_ref (m)', low=0.0, high=10.0,
+                read_only=True),
+        declare(node, 'sensor_sigma_stereo', 0.0, 'custom sensor: c2 (1/m)', low=0.0, high=1.0, read_only=True),
+        declare(node, 'sensor_quantisation_quadratic', 0.00285, 'custom sensor: q2 (1/m) in q = q2 z^2 + q0',
+                low=0.0, high=1.0, read_only=True),
+        declare(node, 'sensor_quantisation_constant', 0.0, 'custom sensor: q0 (m)', low=0.0, high=1.0,
+                read_only=True))
+    plane = _optional_box(declare(node, 'table_plane', [0.0, 0.0, 0.0, 0.0],
+                                  'table plane a x + b y + c z + d = 0 in the camera frame (m); all 0 = fit it '
+                                  '(robust MSAC over the whole cloud)'), 'table_plane')
+    target = declare(node, 'target', defaults.target,
+                     "which object to model: 'largest', 'nearest_center' (of the image), 'pixel' or 'table' "
+                     '(the object containing target_point)', choices=list(sensing.TARGET_MODES))
+    point = [float(v) for v in declare(node, 'target_point', [0.0, 0.0],
+                                       "target 'pixel': (u, v) px; target 'table': (x, y) m in the table frame")]
+    return dict(
+        sensor=custom if model == 'custom' else noise_model.SensorModel.named(model),
+        table_plane=plane,
+        roi_px=_optional_box(declare(node, 'roi_px', [0.0, 0.0, 0.0, 0.0],
+                                     'region of interest (u_min, v_min, u_max, v_max) px; all 0 = whole image'),
+                             'roi_px'),
+        roi_table=_optional_box(declare(node, 'roi_table', [0.0, 0.0, 0.0, 0.0],
+                                        'region of interest (x_min, y_min, x_max, y_max) m in the table frame; '
+                                        'all 0 = whole table'), 'roi_table'),
+        target=target,
+        target_point=tuple(point) if target in ('pixel', 'table') else None,
+        max_opening_m=declare(node, 'max_opening', float(defaults.max_opening_m),
+                              'gripper opening (m): a target with no part narrower is refused (0 = no check)',
+                              low=0.0, high=2.0),
+        max_tilt_deg=declare(node, 'max_tilt_deg', float(defaults.max_tilt_deg),
+                             'a table plane tilted more than this from the optical axis is refused (edge-on)',
+                             low=1.0, high=89.0),
+    )
 
 
 class SegmentationNode(Node):
@@ -55,9 +119,10 @@ class SegmentationNode(Node):
             height_threshold=declare(self, 'height_threshold', float(defaults.height_threshold),
                                      'depth mask: minimum height above the table (m)', low=0.0, high=0.5),
             color_threshold=declare(self, 'color_threshold', float(defaults.color_threshold),
-                                    'RGB mask: minimum colour distance from the table colour (0-255 units); '
-                                    '0 = adaptive to the table texture seen at the image border',
+                                    'RGB mask: minimum distance from the table colour\'s shadow line (0-255 units); '
+                                    '0 = adaptive to the table texture seen on the fitted plane',
                                     low=0.0, high=442.0),
+            **perception_parameters(self, defaults),
         )
         self._frames: list[tuple[np.ndarray, np.ndarray]] = []
         self._stamp = None
@@ -81,6 +146,8 @@ class SegmentationNode(Node):
                                      guarded(self, 'camera/rgb/camera_info', self._on_info), qos)
         self.occupancy_pub = self.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
         self.noise_pub = self.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
+        #: latched outcome of the last segmentation: 'ok: ...' or 'failed: <reason>' (nothing published then)
+        self.status_pub = self.create_publisher(String, 'segmentation/status', LATCHED_QOS)
 
     # ------------------------------------------------------------------ inputs
     def _on_cloud(self, msg: PointCloud2) -> None:
@@ -154,14 +221,19 @@ class SegmentationNode(Node):
                                             frame_id=self._frame_id)
         except ValueError as exc:
             self.get_logger().warning(f'segmentation failed, nothing published: {exc}')
+            self.status_pub.publish(String(data=f'failed: {exc}'))
             return
         factory = conversions.RclpyFactory()
         header_msg = messages.header(factory, messages.stamp_to_ns(self._stamp), self._frame_id)
         occ, noise, geometry = pipeline.publishable_grids(result)
         self.occupancy_pub.publish(messages.numpy_to_occupancy_grid(factory, occ, geometry, header_msg))
         self.noise_pub.publish(messages.numpy_to_float_grid(factory, noise, geometry, header_msg, 'm^2'))
-        self.get_logger().info(f'published {result.geometry.height}x{result.geometry.width} occupancy and noise map '
-                               f'from {len(frames)} frames ({int(result.missing.sum())} missing cells)')
+        summary = (f'published {result.geometry.height}x{result.geometry.width} occupancy and noise map from '
+                   f'{len(frames)} frames (worth {result.effective_frames:.1f} independent): '
+                   f'{result.objects_seen} object(s) on the table, target {result.geometry.size_m[0] * 1000:.0f} mm '
+                   f'grid, table tilt {result.table.tilt_deg:.1f} deg, {int(result.missing.sum())} missing cells')
+        self.get_logger().info(summary)
+        self.status_pub.publish(String(data=f'ok: {summary}'))
 
 
 def main(args: list[str] | None = None) -> int:

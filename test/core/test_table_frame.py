@@ -1,0 +1,192 @@
+"""Table plane, table frame, grids in the table plane and target isolation (core/table_frame, core/sensing)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tilted_scene import Box, TiltedScene
+
+from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.sensing import SensingParams, minimum_width, segment_frames
+from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
+
+BOX = Box(0.0, 0.0, 0.03, 0.02, 0.04)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+def footprint_iou(result, scene: TiltedScene, box: Box) -> float:
+    """IoU of the occupied cells with the box footprint, cell centres mapped through the *true* table frame."""
+    g = result.geometry
+    xy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    inside = (np.abs(xy[..., 0] - box.x) < box.half_x) & (np.abs(xy[..., 1] - box.y) < box.half_y)
+    occ = result.occupancy >= 0.5
+    return float((inside & occ).sum() / (inside | occ).sum())
+
+
+@pytest.fixture(scope='module', params=[0.0, 30.0, 50.0])
+def tilted(request):
+    scene = TiltedScene(request.param, boxes=[BOX])
+    rgb, depth, _ = scene.frames(10, seed=int(request.param))
+    return scene, segment_frames(rgb, depth, scene.intrinsics)
+
+
+def test_fitted_plane_normal_within_1_degree_and_offset_within_2_mm(tilted):
+    scene, result = tilted
+    assert angle_deg(result.table.n, scene.normal) < 1.0
+    assert abs(result.table.offset_m - scene.offset) < 0.002
+    assert result.table.tilt_deg == pytest.approx(scene.tilt_deg, abs=1.0)
+
+
+def test_grid_lies_in_the_table_plane(tilted):
+    scene, result = tilted
+    g = result.geometry
+    corners = np.array([[g.origin_x, g.origin_y], [g.origin_x + g.size_m[0], g.origin_y],
+                        [g.origin_x, g.origin_y + g.size_m[1]], [g.origin_x + g.size_m[0], g.origin_y + g.size_m[1]]])
+    on_plane = g.to_sensor(corners) @ scene.normal + scene.offset
+    assert np.abs(on_plane).max() < 0.001
+    # the grid's z axis is -normal and its pose round-trips through the corner pose
+    assert angle_deg(-g.rotation_matrix[:, 2], scene.normal) < 1.0
+    assert g.z == pytest.approx(result.table.offset_m)
+
+
+def test_box_footprint_is_recovered_at_every_tilt(tilted):
+    """Orthographic projection: the 6 x 4 cm footprint, not the perspective image of the 4 cm high top."""
+    scene, result = tilted
+    assert footprint_iou(result, scene, BOX) > 0.75
+    assert result.objects_seen == 1
+    # the grid is square around the footprint (6 cm + 2 x 20 % margin)
+    assert result.geometry.size_m[0] == pytest.approx(0.06 * 1.4, rel=0.12)
+
+
+def test_given_table_plane_overrides_the_fit():
+    scene = TiltedScene(30.0, boxes=[BOX])
+    rgb, depth, _ = scene.frames(3)
+    a, b, c = 2.0 * scene.normal
+    result = segment_frames(rgb, depth, scene.intrinsics, SensingParams(table_plane=(a, b, c, 2.0 * scene.offset)))
+    assert np.allclose(result.table.n, scene.normal) and result.table.offset_m == pytest.approx(scene.offset)
+    flipped = TableFrame.from_plane(-a, -b, -c, -2.0 * scene.offset)  # normal towards the camera either way
+    assert np.allclose(flipped.n, scene.normal)
+
+
+def test_fit_is_robust_to_outliers_and_uses_the_sensor_model():
+    rng = np.random.default_rng(3)
+    scene = TiltedScene(40.0)
+    xy = rng.uniform(-0.3, 0.3, (6000, 2))
+    pts = scene.to_camera(xy)
+    model = SensorModel.named('realsense_d400')
+    pts = pts + (model.sigma(pts[:, 2]) * rng.standard_normal(len(pts)))[:, None] * pts / pts[:, 2:3]
+    clutter = rng.uniform([-0.3, -0.3, 0.4], [0.3, 0.3, 1.0], (4000, 3))  # 40 % outliers
+    frame = fit_table_plane(np.vstack([pts, clutter]), model)
+    assert angle_deg(frame.n, scene.normal) < 0.5
+    assert abs(frame.offset_m - scene.offset) < 0.001
+    assert 0.55 < frame.inlier_fraction < 0.7
+
+
+@pytest.mark.parametrize('case, match', [
+    ('no_plane', 'no table plane found'),
+    ('edge_on', 'edge-on'),
+    ('too_few', 'cannot estimate the table plane'),
+])
+def test_fit_refuses_bad_clouds(case, match):
+    rng = np.random.default_rng(0)
+    if case == 'no_plane':
+        pts = rng.uniform([-0.5, -0.5, 0.5], [0.5, 0.5, 1.5], (5000, 3))
+    elif case == 'edge_on':
+        scene = TiltedScene(85.0)
+        pts = scene.to_camera(rng.uniform(-0.3, 0.3, (3000, 2)))
+        pts = pts[pts[:, 2] > 0.1]
+    else:
+        pts = rng.uniform(0.5, 1.0, (50, 3))
+    with pytest.raises(ValueError, match=match):
+        fit_table_plane(pts, SensorModel())
+
+
+# ---------------------------------------------------------------------------------------- targets
+TWO = [Box(-0.06, 0.0, 0.02, 0.02, 0.03, (200, 40, 40)), Box(0.05, 0.01, 0.03, 0.025, 0.05)]
+
+
+@pytest.fixture(scope='module')
+def two_boxes():
+    scene = TiltedScene(45.0, boxes=TWO)
+    rgb, depth, label = scene.frames(5, seed=7)
+    return scene, rgb, depth, label
+
+
+def _pixel_of(label: np.ndarray, k: int) -> tuple[float, float]:
+    v, u = np.nonzero(label == k)
+    i = len(u) // 2
+    return float(u[i]), float(v[i])
+
+
+@pytest.mark.parametrize('target', ['largest', 'pixel1', 'pixel2', 'table1', 'nearest_center'])
+def test_target_selection_keeps_only_the_target(two_boxes, target):
+    scene, rgb, depth, label = two_boxes
+    if target == 'largest':
+        params, want = SensingParams(), 1
+    elif target.startswith('pixel'):
+        k = int(target[-1])
+        params, want = SensingParams(target='pixel', target_point=_pixel_of(label, k)), k - 1
+    elif target == 'table1':
+        # table frame of the fit: the first box's centre, mapped through the true camera point
+        first = segment_frames(rgb, depth, scene.intrinsics)
+        point, _ = first.table.to_table(scene.to_camera(np.array([TWO[0].x, TWO[0].y])))
+        params, want = SensingParams(target='table', target_point=tuple(point)), 0
+    else:
+        # the image centre looks at the table between the boxes, nearer the second box's pixels
+        _, vv = np.nonzero(label >= 0)
+        params = SensingParams(target='nearest_center')
+        cu, cv = (scene.width - 1) / 2, (scene.height - 1) / 2
+        dist = [np.hypot(*(np.argwhere(label == k).mean(axis=0)[::-1] - (cu, cv))) for k in (1, 2)]
+        want = int(np.argmin(dist))
+    result = segment_frames(rgb, depth, scene.intrinsics, params)
+    assert result.objects_seen == 2
+    assert footprint_iou(result, scene, TWO[want]) > 0.7
+    other = TWO[1 - want]
+    assert footprint_iou(result, scene, other) == 0.0  # the neighbour is not merged into the target's grid
+
+
+def test_target_point_on_no_object_is_refused(two_boxes):
+    scene, rgb, depth, _ = two_boxes
+    with pytest.raises(ValueError, match='on no object.*2 object'):
+        segment_frames(rgb, depth, scene.intrinsics, SensingParams(target='table', target_point=(5.0, 5.0)))
+    with pytest.raises(ValueError, match='outside'):
+        segment_frames(rgb, depth, scene.intrinsics, SensingParams(target='pixel', target_point=(-3, 10)))
+
+
+def test_empty_table_and_cut_and_too_wide_targets_are_refused():
+    empty = TiltedScene(30.0)
+    rgb, depth, _ = empty.frames(3)
+    with pytest.raises(ValueError, match='no object found on the table'):
+        segment_frames(rgb, depth, empty.intrinsics)
+    cut = TiltedScene(30.0, boxes=[Box(0.44, 0.0, 0.04, 0.03, 0.03)])  # reaches past the right image edge
+    rgb, depth, label = cut.frames(3)
+    assert (label[:, -1] > 0).any()
+    with pytest.raises(ValueError, match='cut by the image border'):
+        segment_frames(rgb, depth, cut.intrinsics)
+    wide = TiltedScene(30.0, boxes=[Box(0.0, 0.0, 0.06, 0.055, 0.02)])  # 12 x 11 cm, opening 9 cm
+    rgb, depth, _ = wide.frames(3)
+    with pytest.raises(ValueError, match='max_opening_m = 90 mm'):
+        segment_frames(rgb, depth, wide.intrinsics)
+    result = segment_frames(rgb, depth, wide.intrinsics, SensingParams(max_opening_m=0.15))
+    assert footprint_iou(result, wide, wide.boxes[0]) > 0.75
+
+
+def test_region_of_interest_excludes_other_objects(two_boxes):
+    scene, rgb, depth, label = two_boxes
+    v, u = np.nonzero(label == 1)
+    roi = (u.min() - 10, v.min() - 10, u.max() + 10, v.max() + 10)
+    result = segment_frames(rgb, depth, scene.intrinsics, SensingParams(roi_px=roi))
+    assert result.objects_seen == 1 and footprint_iou(result, scene, TWO[0]) > 0.7
+
+
+def test_minimum_width_of_rotated_rectangle():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        a, b, th = rng.uniform(0.01, 0.1), rng.uniform(0.01, 0.1), rng.uniform(0, np.pi)
+        pts = rng.uniform(-0.5, 0.5, (400, 2)) * (a, b)
+        pts = np.vstack([pts, np.array([[-a, -b], [a, -b], [a, b], [-a, b]]) / 2])
+        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        assert minimum_width(pts @ rot.T) == pytest.approx(min(a, b), rel=1e-4)

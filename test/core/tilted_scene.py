@@ -1,0 +1,122 @@
+"""Analytic RGB-D renderer for tests: boxes on a table plane seen by a tilted pinhole camera.
+
+Independent of the package's simulator: every pixel's ray is intersected exactly with the table
+plane and with each box (slab method) in the *true* table frame built here. The camera is
+pitched by ``tilt_deg`` about its x axis, so the table's upward normal in the camera frame is
+n = (0, -sin t, -cos t) and the plane is n . p + d = 0 (d = camera height above the table, m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.sensing import CameraIntrinsics
+
+TABLE_RGB = np.array([150.0, 140.0, 120.0])
+
+
+@dataclass
+class Box:
+    """Axis-aligned box on the table: centre (x, y) and half sizes in the true table frame (m), height (m)."""
+
+    x: float
+    y: float
+    half_x: float
+    half_y: float
+    height: float
+    rgb: tuple[float, float, float] = (40.0, 90.0, 200.0)
+
+
+@dataclass
+class TiltedScene:
+    tilt_deg: float
+    distance_m: float = 0.8  # along the optical axis to the table
+    boxes: list[Box] = field(default_factory=list)
+    width: int = 640
+    height: int = 480
+    focal_px: float = 570.0  # VGA, like the Carmine
+    shadows: list[tuple[float, float, float, float, float]] = field(default_factory=list)  # (x0, y0, x1, y1, gain)
+
+    @property
+    def normal(self) -> np.ndarray:
+        t = np.radians(self.tilt_deg)
+        return np.array([0.0, -np.sin(t), -np.cos(t)])
+
+    @property
+    def offset(self) -> float:
+        """d of n . p + d = 0: the optical axis meets the table at ``distance_m``."""
+        return float(-self.normal @ np.array([0.0, 0.0, self.distance_m]))
+
+    @property
+    def frame(self) -> np.ndarray:
+        """True table frame: columns x (= camera x), y, z = -n; table point (x, y) at depth d along z."""
+        z = -self.normal
+        x = np.array([1.0, 0.0, 0.0])
+        return np.stack([x, np.cross(z, x), z], axis=1)
+
+    @property
+    def origin_xy(self) -> np.ndarray:
+        """Table (x, y) of the point where the optical axis meets the table (boxes are placed around it)."""
+        return (np.array([0.0, 0.0, self.distance_m]) @ self.frame)[:2]
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        return CameraIntrinsics(self.focal_px, self.focal_px, (self.width - 1) / 2, (self.height - 1) / 2,
+                                self.width, self.height)
+
+    def to_camera(self, xy: np.ndarray, h: float = 0.0) -> np.ndarray:
+        """True table (x, y) relative to the optical axis' foot, at height h → camera frame."""
+        xy = np.asarray(xy, dtype=np.float64) + self.origin_xy
+        local = np.concatenate([xy, np.full(xy.shape[:-1] + (1,), self.offset - h)], axis=-1)
+        return local @ self.frame.T
+
+    def table_xy(self, points: np.ndarray) -> np.ndarray:
+        """Camera points → true table (x, y) relative to the optical axis' foot."""
+        return (np.asarray(points) @ self.frame)[..., :2] - self.origin_xy
+
+    def render(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Noise-free (depth (H, W) m, NaN = no hit; rgb (H, W, 3) float; label (H, W): 0 table, k = box k)."""
+        intr = self.intrinsics
+        u, v = np.meshgrid(np.arange(self.width), np.arange(self.height))
+        rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(u.shape)], axis=-1)
+        local = rays @ self.frame  # ray directions in the table frame
+        d = self.offset
+        with np.errstate(divide='ignore', invalid='ignore'):
+            t_best = np.where(local[..., 2] > 1e-9, d / local[..., 2], np.inf)
+        label = np.zeros(u.shape, dtype=np.int64)
+        ox, oy = self.origin_xy
+        for k, b in enumerate(self.boxes, start=1):
+            lo = np.array([ox + b.x - b.half_x, oy + b.y - b.half_y, d - b.height])
+            hi = np.array([ox + b.x + b.half_x, oy + b.y + b.half_y, d])
+            with np.errstate(divide='ignore', invalid='ignore'):
+                t1 = lo / local
+                t2 = hi / local
+            t_near = np.nanmax(np.minimum(t1, t2), axis=-1)
+            t_far = np.nanmin(np.maximum(t1, t2), axis=-1)
+            hit = (t_near <= t_far) & (t_near > 0) & (t_near < t_best)
+            t_best = np.where(hit, t_near, t_best)
+            label = np.where(hit, k, label)
+        depth = np.where(np.isfinite(t_best), t_best, np.nan)  # rays have z = 1: t is the depth
+        rgb = np.broadcast_to(TABLE_RGB, u.shape + (3,)).copy()
+        table_xy = self.table_xy(rays * depth[..., None])
+        for x0, y0, x1, y1, gain in self.shadows:
+            sh = (label == 0) & (table_xy[..., 0] >= x0) & (table_xy[..., 0] <= x1) & (table_xy[..., 1] >= y0) \
+                & (table_xy[..., 1] <= y1)
+            rgb[sh] *= gain
+        for k, b in enumerate(self.boxes, start=1):
+            rgb[label == k] = b.rgb
+        return depth, rgb, label
+
+    def frames(self, n: int = 10, seed: int = 0, model: SensorModel | None = None,
+               rgb_noise: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``n`` noisy frames (rgb uint8 (n, H, W, 3), depth (n, H, W) m) and the label image."""
+        model = model or SensorModel()
+        rng = np.random.default_rng(seed)
+        depth, rgb, label = self.render()
+        sigma = model.sigma(np.nan_to_num(depth, nan=1.0))
+        d = depth[None] + sigma[None] * rng.standard_normal((n,) + depth.shape)
+        c = np.clip(np.round(rgb[None] + rgb_noise * rng.standard_normal((n,) + rgb.shape)), 0, 255).astype(np.uint8)
+        return c, d, label
