@@ -58,6 +58,7 @@ import resource
 import sys
 import time
 import traceback
+import zlib
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -209,9 +210,13 @@ def to_truth_grid(xy: np.ndarray, planning: Any, truth: Any) -> np.ndarray:
 
 
 def _derive_seed(*keys: int | str) -> int:
-    from gpis_grasp_ros.tools.benchmark.evaluation import derive_seed
+    """A 64-bit seed from integers and strings (CRC-32 of strings, ``SeedSequence``): process independent.
 
-    return derive_seed(*keys)
+    The same derivation as the benchmark's ``derive_seed``, kept here so that workers do not import the
+    benchmark's plotting modules."""
+    words = [int(k) if isinstance(k, (int, np.integer)) else zlib.crc32(str(k).encode('utf-8')) for k in keys]
+    state = np.random.SeedSequence(words).generate_state(2, dtype=np.uint32)
+    return (int(state[0]) << 32) | int(state[1])
 
 
 def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
@@ -446,6 +451,12 @@ def _run_process(tasks: Sequence[Task], col: _Collector, fn: Callable[[Task, int
                     pending[pool.submit(fn, task, again)] = (task, again)
 
 
+def _check_scheduler(scheduler: str) -> None:
+    if scheduler != 'local' and not scheduler.startswith(('tcp://', 'tls://', 'ucx://', 'inproc://')):
+        raise ValueError(f"--scheduler must be 'local' or a scheduler address such as tcp://10.0.0.5:8786, "
+                         f"got '{scheduler}'")
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str = 'local', workers: int = 2) -> Iterator[Any]:
     """A ``distributed.Client``: a private loopback LocalCluster (``'local'``) or an existing scheduler."""
@@ -456,12 +467,10 @@ def dask_client(scheduler: str = 'local', workers: int = 2) -> Iterator[Any]:
                                                 n_workers=int(workers), threads_per_worker=1,
                                                 silence_logs=40) as cluster, Client(cluster) as client:
             yield client
-    elif scheduler.startswith(('tcp://', 'tls://', 'ucx://', 'inproc://')):
+    else:
+        _check_scheduler(scheduler)
         with Client(scheduler) as client:
             yield client
-    else:
-        raise ValueError(f"--scheduler must be 'local' or a scheduler address such as tcp://10.0.0.5:8786, "
-                         f"got '{scheduler}'")
 
 
 def _run_dask(tasks: Sequence[Task], col: _Collector, fn: Callable[[Task, int], dict[str, Any]],
@@ -506,6 +515,8 @@ def run_evaluation(tasks: Sequence[Task], out: str | os.PathLike[str], executor:
     ids = [t.task_id for t in tasks]
     if len(set(ids)) != len(ids):
         raise ValueError('duplicate tasks in the task list')
+    if executor == 'dask' and client is None:
+        _check_scheduler(scheduler)
     workers = 1 if executor == 'serial' else max(1, int(workers))
     files = _prepare_out(Path(out), fingerprint(tasks, dataset_digest), fresh)
     done_ids = {r['task_id'] for r in read_results(files.results)}
