@@ -240,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
         tasks = ev.make_tasks(entries, [args.method], range(max(1, args.seeds)), args.lambdas, args.alphas,
                               ev.settings_from_args(args))
         run = ev.run_evaluation(tasks, out / 'runs', args.executor, args.workers, args.scheduler, fresh=args.fresh,
-                                progress=not args.no_progress, dataset_digest=digest)
+                                progress=not args.no_progress, dataset_digest=digest, affinity=args.affinity)
         cv = run_cv(run.rows, args.lambdas, args.alphas, args.folds, args.cv_seed)
     except ValueError as err:
         print(f'gpis-grasp tune: {err}', file=sys.stderr)

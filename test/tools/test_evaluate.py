@@ -85,6 +85,9 @@ def test_process_and_dask_executors_give_identical_rows(serial, tasks, dask_clie
     dask = ev.run_evaluation(tasks, tmp_path / 'dask', 'dask', client=dask_client, progress=False)
     assert not dask.failures
     assert ev.comparable(dask.rows) == ev.comparable(serial.rows)
+    single = ev.run_evaluation(tasks[:4], tmp_path / 'dask-task', 'dask', client=dask_client, progress=False,
+                               affinity='task')
+    assert ev.comparable(single.rows) == ev.comparable(serial.rows[:4])
     workers = {r['worker'] for r in dask.rows}
     assert len(workers) >= 1 and all(w.split(':')[1] != str(os.getpid()) for w in workers)
 
