@@ -32,7 +32,7 @@ benchmark: setup
 	@$(ENV) python -m gpis_grasp_ros.cli benchmark --out $(OUT)/benchmark
 
 bags: setup
-	@$(ENV) python -m gpis_grasp_ros.cli make-bags --out bags
+	@$(ENV) python -m gpis_grasp_ros.cli make-bags --out bags && python -m gpis_grasp_ros.cli make-bags --head --out bags
 
 clean:
 	rm -rf build install log out .venv
