@@ -49,7 +49,7 @@ done
 stamp_key() {
   cat requirements.txt requirements-ros.txt scripts/setup.sh setup.py setup.cfg package.xml \
       gpis_grasp_interfaces/CMakeLists.txt gpis_grasp_interfaces/package.xml \
-      gpis_grasp_interfaces/msg/* gpis_grasp_interfaces/srv/*
+      gpis_grasp_interfaces/msg/* gpis_grasp_interfaces/srv/* gpis_grasp_interfaces/action/*
   echo "system_ros=$SYSTEM_ROS python=$PY"
 }
 

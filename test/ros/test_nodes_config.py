@@ -23,9 +23,10 @@ def test_default_yaml_matches_declared_parameters():
     finally:
         rclpy.try_shutdown(context=context)
     documented = yaml.safe_load((ROOT / 'config' / 'default.yaml').read_text())
-    assert set(documented) == set(declared)
+    # '/**/node:' keys: the file applies to the nodes under any namespace
+    assert set(documented) == {f'/**/{node}' for node in declared}
     for node, rows in declared.items():
-        values = documented[node]['ros__parameters']
+        values = documented[f'/**/{node}']['ros__parameters']
         assert set(values) == {name for name, _, _ in rows}, node
         for name, default, description in rows:
             assert values[name] == default, f'{node}.{name}'

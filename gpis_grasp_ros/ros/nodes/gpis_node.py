@@ -11,45 +11,97 @@ and publishes latched ``gpis/model`` (GpisModel), ``gpis/mean`` and ``gpis/varia
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from nav_msgs.msg import OccupancyGrid
-from rclpy.node import Node
 from sensor_msgs.msg import Image
 
 from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
 from gpis_grasp_ros.core import gpis, pipeline
 from gpis_grasp_ros.core.blur import gpis_blur
 from gpis_grasp_ros.data import messages
-from gpis_grasp_ros.ros import conversions
-from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, declare, guarded, run_node
+from gpis_grasp_ros.ros import conversions, validation
+from gpis_grasp_ros.ros.nodes.common import (
+    LATCHED_QOS,
+    GuardedNode,
+    declare,
+    guarded,
+    log_startup,
+    run_node,
+    watch_parameters,
+)
+
+#: Largest per-cell noise variance accepted on object/noise_map (m^2; a 1 m standard deviation).
+MAX_NOISE_VARIANCE = 1.0
 
 
-class GpisNode(Node):
+@dataclass(frozen=True)
+class GpisNodeConfig:
+    """gpis_node parameters in effect."""
+
+    params: gpis.GpisParams
+    blur_samples: int
+    blur_upsample: int
+    stamp_tolerance: float
+    limits: validation.Limits
+
+
+def build_config(v: dict[str, Any]) -> GpisNodeConfig:
+    """Parameter values → :class:`GpisNodeConfig` (ValueError names the parameter)."""
+    if v['min_resolution'] >= v['max_resolution']:
+        raise ValueError('min_resolution must be smaller than max_resolution')
+    params = gpis.GpisParams(prior_mean=float(v['prior_mean']),
+                             optimize_hyperparameters=bool(v['optimize_hyperparameters']),
+                             signal_variance=float(v['signal_variance']) or None,
+                             length_scale=float(v['length_scale']) or None)
+    limits = validation.Limits(max_grid_cells=int(v['max_grid_cells']), min_resolution=float(v['min_resolution']),
+                               max_resolution=float(v['max_resolution']))
+    return GpisNodeConfig(params=params, blur_samples=int(v['blur_samples']), blur_upsample=int(v['blur_upsample']),
+                          stamp_tolerance=float(v['stamp_tolerance']), limits=limits)
+
+
+def grid_mismatch(a, b) -> str | None:
+    """Name the first field in which two grid geometries differ (None when they describe the same grid)."""
+    for name in ('width', 'height'):
+        if getattr(a, name) != getattr(b, name):
+            return f'info.{name} ({getattr(a, name)} vs {getattr(b, name)})'
+    for name in ('resolution', 'origin_x', 'origin_y', 'z'):
+        va, vb = float(getattr(a, name)), float(getattr(b, name))
+        if abs(va - vb) > 1e-9:
+            field = 'info.resolution' if name == 'resolution' else \
+                f"info.origin.position.{ {'origin_x': 'x', 'origin_y': 'y', 'z': 'z'}[name]}"
+            return f'{field} ({va:g} vs {vb:g} m)'
+    if not np.allclose(a.rotation, b.rotation, atol=1e-9):
+        return 'info.origin.orientation'
+    return None
+
+
+class GpisNode(GuardedNode):
     """Thin ROS wrapper around :func:`gpis_grasp_ros.core.gpis.fit_gpis`."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__('gpis_node', **kwargs)
         d = gpis.GpisParams()
-        self.params = gpis.GpisParams(
-            prior_mean=declare(self, 'prior_mean', float(d.prior_mean),
-                               'constant prior mean of the SDF (m); negative biases unobserved cells to object',
-                               low=-1.0, high=0.0),
-            optimize_hyperparameters=declare(self, 'optimize_hyperparameters', bool(d.optimize_hyperparameters),
-                                             'fit C and l by maximum marginal likelihood'),
-            signal_variance=declare(self, 'signal_variance', float(d.signal_variance or 0.0),
-                                    'kernel scale C (m^2) used when not optimising (0 = data-driven default)',
-                                    low=0.0, high=1.0) or None,
-            length_scale=declare(self, 'length_scale', float(d.length_scale or 0.0),
-                                 'kernel bandwidth l (m) used when not optimising (0 = data-driven default)',
-                                 low=0.0, high=10.0) or None,
-        )
-        self.blur_samples = declare(self, 'blur_samples', 1000, 'GPIS-Blur: number of shape samples (paper: 1000)',
-                                    low=1, high=100000)
-        self.blur_upsample = declare(self, 'blur_upsample', 8, 'GPIS-Blur: image pixels per grid cell', low=1, high=64)
-        self.stamp_tolerance = declare(self, 'stamp_tolerance', 0.0,
-                                       'max stamp difference (s) between occupancy and noise map to pair them',
-                                       low=0.0, high=10.0)
+        declare(self, 'prior_mean', float(d.prior_mean),
+                'constant prior mean of the SDF (m); negative biases unobserved cells to object', low=-1.0, high=0.0)
+        declare(self, 'optimize_hyperparameters', bool(d.optimize_hyperparameters),
+                'fit C and l by maximum marginal likelihood')
+        declare(self, 'signal_variance', float(d.signal_variance or 0.0),
+                'kernel scale C (m^2) used when not optimising (0 = data-driven default)', low=0.0, high=1.0)
+        declare(self, 'length_scale', float(d.length_scale or 0.0),
+                'kernel bandwidth l (m) used when not optimising (0 = data-driven default)', low=0.0, high=10.0)
+        declare(self, 'blur_samples', 1000, 'GPIS-Blur: number of shape samples (paper: 1000)', low=1, high=100000)
+        declare(self, 'blur_upsample', 8, 'GPIS-Blur: image pixels per grid cell', low=1, high=64)
+        declare(self, 'stamp_tolerance', 0.0,
+                'max stamp difference (s) between occupancy and noise map to pair them', low=0.0, high=10.0)
+        lim = validation.Limits()
+        declare(self, 'max_grid_cells', lim.max_grid_cells, 'largest input grid accepted (cells); the GP fit needs '
+                'about 8 n^2 bytes for n training cells', low=16, high=40000)
+        declare(self, 'min_resolution', lim.min_resolution, 'smallest input cell size accepted (m)', low=1e-6, high=0.1)
+        declare(self, 'max_resolution', lim.max_resolution, 'largest input cell size accepted (m)', low=1e-3, high=10.0)
+        self.config: GpisNodeConfig = watch_parameters(self, build_config, self._apply_config)
         self._occupancy: OccupancyGrid | None = None
         self._noise: FloatGrid | None = None
         self._last_pair = None
@@ -64,25 +116,48 @@ class GpisNode(Node):
         self.blur_pub = self.create_publisher(Image, 'gpis/blur', LATCHED_QOS)
         self.mean_map_pub = self.create_publisher(OccupancyGrid, 'gpis/mean_map', LATCHED_QOS)
         self.var_map_pub = self.create_publisher(OccupancyGrid, 'gpis/variance_map', LATCHED_QOS)
+        log_startup(self, ['object/occupancy', 'object/noise_map'],
+                    ['gpis/model', 'gpis/mean', 'gpis/variance', 'gpis/blur', 'gpis/mean_map', 'gpis/variance_map'],
+                    ['optimize_hyperparameters', 'prior_mean', 'blur_samples', 'stamp_tolerance', 'max_grid_cells'])
+
+    @property
+    def params(self) -> gpis.GpisParams:
+        """GPIS parameters in effect."""
+        return self.config.params
+
+    def _apply_config(self, config: GpisNodeConfig) -> None:
+        self.config = config
 
     def _on_occupancy(self, msg: OccupancyGrid) -> None:
+        try:
+            validation.check_occupancy_grid(msg, self.config.limits)
+        except ValueError as exc:
+            self.get_logger().warning(f'ignoring object/occupancy: {exc}')
+            return
         with self._lock:
             self._occupancy = msg
         self._try_fit()
 
     def _on_noise(self, msg: FloatGrid) -> None:
+        try:
+            validation.check_float_grid(msg, self.config.limits, 'FloatGrid object/noise_map', allow_nan=True,
+                                        low=0.0, high=MAX_NOISE_VARIANCE)
+        except ValueError as exc:
+            self.get_logger().warning(f'ignoring object/noise_map: {exc}')
+            return
         with self._lock:
             self._noise = msg
         self._try_fit()
 
     def _try_fit(self) -> None:
+        config = self.config
         with self._lock:
             occ_msg, noise_msg = self._occupancy, self._noise
             if occ_msg is None or noise_msg is None:
                 return
             t_occ = messages.stamp_to_ns(occ_msg.header.stamp)
             t_noise = messages.stamp_to_ns(noise_msg.header.stamp)
-            if abs(t_occ - t_noise) > self.stamp_tolerance * 1e9:
+            if abs(t_occ - t_noise) > config.stamp_tolerance * 1e9:
                 return  # stale or mismatched pair: wait for the partner
             if self._last_pair is not None and self._last_pair[0] is occ_msg and self._last_pair[1] is noise_msg:
                 return  # this exact pair was already used (a replayed bag may repeat stamps)
@@ -90,30 +165,32 @@ class GpisNode(Node):
         try:
             occ, geometry = messages.occupancy_grid_to_numpy(occ_msg)
             noise, noise_geometry = messages.float_grid_to_numpy(noise_msg)
-            if occ.shape != noise.shape or not np.allclose(
-                    [geometry.origin_x, geometry.origin_y, geometry.resolution],
-                    [noise_geometry.origin_x, noise_geometry.origin_y, noise_geometry.resolution], atol=1e-9):
-                raise ValueError(f'occupancy {occ.shape} and noise map {noise.shape} describe different grids')
+            differs = grid_mismatch(geometry, noise_geometry)
+            if differs is not None:
+                raise ValueError(f'object/occupancy and object/noise_map describe different grids: {differs} differs')
             if occ_msg.header.frame_id != noise_msg.header.frame_id:
-                raise ValueError(f"frames differ: '{occ_msg.header.frame_id}' vs '{noise_msg.header.frame_id}'")
-            posterior = self.fit(occ, noise, geometry)
-        except ValueError as exc:
+                raise ValueError(f"frames differ: header.frame_id '{occ_msg.header.frame_id}' vs "
+                                 f"'{noise_msg.header.frame_id}'")
+            posterior = self.fit(occ, noise, geometry, config.params)
+            validation.check_posterior(posterior)
+        except (ValueError, np.linalg.LinAlgError) as exc:
             self.get_logger().warning(f'GPIS not updated: {exc}')
             return
-        self._publish(posterior, occ_msg.header)
+        self._publish(posterior, occ_msg.header, config)
 
-    def fit(self, occ: np.ndarray, noise: np.ndarray, geometry) -> gpis.GpisPosterior:
+    def fit(self, occ: np.ndarray, noise: np.ndarray, geometry, params: gpis.GpisParams | None = None
+            ) -> gpis.GpisPosterior:
         """Occupancy (0..100, -1 = missing) and noise (m^2, NaN = untrained) → GPIS posterior."""
-        return pipeline.posterior_from_grids(occ, noise, geometry, self.params)
+        return pipeline.posterior_from_grids(occ, noise, geometry, params or self.config.params)
 
-    def _publish(self, posterior: gpis.GpisPosterior, header) -> None:
+    def _publish(self, posterior: gpis.GpisPosterior, header, config: GpisNodeConfig) -> None:
         factory = conversions.RclpyFactory()
         g = posterior.geometry
         self.model_pub.publish(messages.posterior_to_gpis_model(posterior, header, factory))
         self.mean_pub.publish(messages.numpy_to_float_grid(factory, posterior.mean, g, header, 'm'))
         self.var_pub.publish(messages.numpy_to_float_grid(factory, posterior.variance, g, header, 'm^2'))
-        blur = gpis_blur(posterior, n_samples=self.blur_samples, rng=np.random.default_rng(0),
-                         upsample=self.blur_upsample)
+        blur = gpis_blur(posterior, n_samples=config.blur_samples, rng=np.random.default_rng(0),
+                         upsample=config.blur_upsample)
         self.blur_pub.publish(messages.numpy_to_image(factory, blur, 'mono8', header))
         # RViz renderings: mean as occupancy-like (inside = 100), variance normalised to 0..100.
         scale = max(float(np.abs(posterior.mean).max()), 1e-9)

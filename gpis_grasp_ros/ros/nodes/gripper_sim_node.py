@@ -10,36 +10,56 @@ Ferrari-Canny code the planner uses.
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
-from rclpy.node import Node
 
 from gpis_grasp_interfaces.msg import FloatGrid
 from gpis_grasp_interfaces.srv import ExecuteGrasp
 from gpis_grasp_ros.core import contacts, planners
 from gpis_grasp_ros.data import messages
-from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, declare, guarded, guarded_service, run_node
+from gpis_grasp_ros.ros import validation
+from gpis_grasp_ros.ros.nodes.common import (
+    LATCHED_QOS,
+    SERVICE_QOS,
+    GuardedNode,
+    declare,
+    guarded,
+    guarded_service,
+    log_startup,
+    run_node,
+    watch_parameters,
+)
 
 MAX_TRIALS = 100000
+#: Jaws closer than this (m) are the same point: no grasp to execute.
+MIN_JAW_SEPARATION = 1e-4
 
 
-class GripperSimNode(Node):
+def build_gripper(v: dict[str, Any]) -> contacts.GripperParams:
+    """Parameter values → :class:`GripperParams` (ValueError names the parameter)."""
+    if v['jaw_width'] >= v['max_opening']:
+        raise ValueError(f"jaw_width={v['jaw_width']} m must be smaller than max_opening={v['max_opening']} m")
+    return contacts.GripperParams(jaw_width=float(v['jaw_width']), max_opening=float(v['max_opening']),
+                                  friction_coef=float(v['friction_coefficient']),
+                                  position_noise=float(v['position_noise']), contact_patch=float(v['contact_patch']))
+
+
+class GripperSimNode(GuardedNode):
     """Executes grasps on the ground-truth SDF of the replayed scene."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__('gripper_sim_node', **kwargs)
-        self.gripper = contacts.GripperParams(
-            jaw_width=declare(self, 'jaw_width', 0.01, 'w_j: width of each jaw face (m)', low=0.0, high=0.2),
-            max_opening=declare(self, 'max_opening', 0.09, 'w_g: maximum jaw opening (m)', low=0.005, high=0.5),
-            friction_coef=declare(self, 'friction_coefficient', 0.5, 'gamma: Coulomb friction coefficient',
-                             low=0.0, high=5.0),
-            position_noise=declare(self, 'position_noise', 0.003,
-                                   'sigma_g: std of the jaw positioning error (m) per axis', low=0.0, high=0.1),
-            contact_patch=declare(self, 'contact_patch', 0.003,
-                                  'pad compliance (m): surface points within this distance of the first touch '
-                                  'share the contact (the planner uses half a GPIS cell)', low=1e-5, high=0.05),
-        )
+        declare(self, 'jaw_width', 0.01, 'w_j: width of each jaw face (m)', low=0.0, high=0.2)
+        declare(self, 'max_opening', 0.09, 'w_g: maximum jaw opening (m)', low=0.005, high=0.5)
+        declare(self, 'friction_coefficient', 0.5, 'gamma: Coulomb friction coefficient', low=0.0, high=5.0)
+        declare(self, 'position_noise', 0.003, 'sigma_g: std of the jaw positioning error (m) per axis',
+                low=0.0, high=0.1)
+        declare(self, 'contact_patch', 0.003, 'pad compliance (m): surface points within this distance of the first '
+                'touch share the contact (the planner uses half a GPIS cell)', low=1e-5, high=0.05)
+        self.limits = validation.Limits()
+        self.gripper: contacts.GripperParams = watch_parameters(self, build_gripper, self._apply_gripper)
         self._lock = threading.Lock()
         self._sdf = None
         self._geometry = None
@@ -48,11 +68,25 @@ class GripperSimNode(Node):
                                  LATCHED_QOS)
         self.create_subscription(PointStamped, 'ground_truth/center_of_mass',
                                  guarded(self, 'ground_truth/center_of_mass', self._on_com), LATCHED_QOS)
-        self.create_service(ExecuteGrasp, 'execute_grasp', guarded_service(self, 'execute_grasp', self._on_execute))
+        self.create_service(ExecuteGrasp, 'execute_grasp', guarded_service(self, 'execute_grasp', self._on_execute),
+                            qos_profile=SERVICE_QOS)
+        log_startup(self, ['ground_truth/sdf', 'ground_truth/center_of_mass'], [],
+                    ['jaw_width', 'max_opening', 'friction_coefficient', 'position_noise'],
+                    services=['execute_grasp'])
+
+    def _apply_gripper(self, gripper: contacts.GripperParams) -> None:
+        self.gripper = gripper
 
     def _on_sdf(self, msg: FloatGrid) -> None:
         try:
+            validation.check_map_meta_data(msg.info, validation.Limits(max_grid_cells=4_000_000, min_resolution=1e-5),
+                                           'FloatGrid ground_truth/sdf')
             values, geometry = messages.float_grid_to_numpy(msg)
+            if not np.isfinite(values).all():
+                raise ValueError(f'FloatGrid ground_truth/sdf.data has {int((~np.isfinite(values)).sum())} '
+                                 'non-finite value(s)')
+            if not (values < 0).any():
+                raise ValueError('FloatGrid ground_truth/sdf.data has no cell inside the object (no value < 0)')
         except ValueError as exc:
             self.get_logger().warning(f'ignoring ground_truth/sdf: {exc}')
             return
@@ -61,11 +95,17 @@ class GripperSimNode(Node):
         self.get_logger().info(f'ground truth SDF received: {geometry.height}x{geometry.width} cells')
 
     def _on_com(self, msg: PointStamped) -> None:
+        try:
+            xyz = validation.check_point(msg, 'PointStamped ground_truth/center_of_mass.point', self.limits)
+        except ValueError as exc:
+            self.get_logger().warning(f'ignoring ground_truth/center_of_mass: {exc}')
+            return
         with self._lock:
-            self._com = np.array([msg.point.x, msg.point.y])
+            self._com = xyz[:2]
 
     def _on_execute(self, request: ExecuteGrasp.Request, response: ExecuteGrasp.Response) -> ExecuteGrasp.Response:
         response.success = False
+        gripper = self.gripper
         with self._lock:
             true_sdf, geometry, com = self._sdf, self._geometry, self._com
         if true_sdf is None:
@@ -82,13 +122,19 @@ class GripperSimNode(Node):
                 response.message = (f"{name} is in frame '{pose.header.frame_id}' but the ground truth is in "
                                     f"'{geometry.frame_id}' (no TF lookup in the simulator)")
                 return response
-            xy = np.array([pose.pose.position.x, pose.pose.position.y])
-            if not np.all(np.isfinite(xy)):
-                response.message = f'{name} position is not finite'
+            try:
+                xyz = validation.check_pose(pose, name, self.limits)
+            except ValueError as exc:
+                response.message = str(exc)
                 return response
-            jaws.append(xy)
+            jaws.append(xyz[:2])
+        separation = float(np.linalg.norm(jaws[1] - jaws[0]))
+        if separation < MIN_JAW_SEPARATION:
+            response.message = (f'jaw1 and jaw2 are {separation * 1000:.3g} mm apart: identical jaws are not a grasp '
+                                f'(need at least {MIN_JAW_SEPARATION * 1000:g} mm)')
+            return response
         seed = int(request.seed) if request.seed else None
-        successes = planners.execute_grasp_trials(true_sdf, geometry, jaws[0], jaws[1], self.gripper, trials,
+        successes = planners.execute_grasp_trials(true_sdf, geometry, jaws[0], jaws[1], gripper, trials,
                                                   np.random.default_rng(seed), center_of_mass=com)
         response.trials = trials
         response.successes = int(successes)

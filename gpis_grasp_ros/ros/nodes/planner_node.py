@@ -1,96 +1,218 @@
-"""planner_node: serves ``plan_grasp`` (gpis_grasp_interfaces/GraspPlan) on the latest GPIS.
+"""planner_node: serves ``plan_grasp`` (service GraspPlan and action PlanGrasp) on the latest GPIS.
 
 Subscribes ``gpis/model`` (latched), plans with GP-GPIS-OPT or a baseline (paper sections VI,
-VII-B) in a worker thread with a ``planning_timeout``, answers with stamped jaw poses in the
-sensor frame (metres), and publishes ``grasp/markers`` (RViz) and ``grasp/image`` (the grasp drawn
-on the GPIS-Blur image).
+VII-B), answers with stamped jaw poses in the sensor frame (metres), and publishes
+``grasp/markers`` (RViz) and ``grasp/image`` (the grasp drawn on the GPIS-Blur image).
+
+**Many callers.** Requests (service calls and action goals alike) go into one bounded FIFO queue
+(``max_queue`` waiting requests) served by ``workers`` planning threads. A request that finds the
+queue full is answered at once: ``success=false``, "planner queue full: N requests waiting
+(max_queue=N) ...". Every admitted request is answered within ``planning_timeout`` (counted from
+the moment planning starts) plus the time it waited in the queue. Planning is cooperatively
+cancellable (:class:`gpis_grasp_ros.core.planners.PlanControl`): a timeout, an action cancel or
+shutdown stops the computation at the planner's next checkpoint (milliseconds on a 25 x 25 grid)
+and the worker takes the next request at once. The service keeps a request history of
+:data:`~gpis_grasp_ros.ros.nodes.common.SERVICE_QUEUE_DEPTH` so that a burst of calls is not
+dropped by DDS before the node takes it.
+
+**Bad input.** A GpisModel is checked against the node's limits before anything is allocated
+(:func:`gpis_grasp_ros.ros.validation.check_gpis_model`) and the rebuilt posterior must be finite;
+a rejected model is logged with the offending field and the previous model stays in use.
+Requests with an unknown method, N_g/K above its limit, or λ outside the parameter's range are
+answered ``success=false`` with the reason.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import threading
 import time
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.node import Node
 from sensor_msgs.msg import Image
 from visualization_msgs.msg import MarkerArray
 
+from gpis_grasp_interfaces.action import PlanGrasp
 from gpis_grasp_interfaces.msg import GpisModel
 from gpis_grasp_interfaces.srv import GraspPlan
 from gpis_grasp_ros.core import contacts, planners
 from gpis_grasp_ros.core.blur import gpis_blur
 from gpis_grasp_ros.data import messages
-from gpis_grasp_ros.ros import conversions
-from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, declare, guarded, guarded_service, run_node
+from gpis_grasp_ros.ros import conversions, validation
+from gpis_grasp_ros.ros.nodes.common import (
+    LATCHED_QOS,
+    SERVICE_QOS,
+    SHUTTING_DOWN,
+    GuardedNode,
+    declare,
+    guarded,
+    guarded_service,
+    log_startup,
+    run_node,
+    watch_parameters,
+)
 from gpis_grasp_ros.viz import images as viz
 
 MAX_INITIAL_GRASPS = 1000
 #: Methods whose request field num_initial_grasps means K heuristic grasp samples.
 SAMPLING_METHODS = ('gp-m', 'gp-p')
 MAX_GRASP_SAMPLES = 100000
+#: Upper bound of the max_queue parameter (the executor keeps one thread per waiting caller).
+MAX_QUEUE_LIMIT = 128
+MAX_WORKERS = 8
+#: Range of the uncertainty_penalty parameter; requests outside it (other than negative = default) are rejected.
+LAMBDA_RANGE = (0.0, 1000.0)
+#: Seconds a stopped plan may take beyond its deadline before the caller is answered without it.
+STOP_GRACE = 2.0
 
 
-class PlannerNode(Node):
-    """Thin ROS wrapper around :func:`gpis_grasp_ros.core.planners.plan`."""
+@dataclass(frozen=True)
+class PlannerConfig:
+    """The planner_node parameters in effect (built and validated by :func:`build_config`)."""
+
+    method: str
+    num_initial_grasps: int
+    num_grasp_samples: int
+    num_shape_samples: int
+    uncertainty_penalty: float
+    gripper: contacts.GripperParams
+    antipodal_alpha: float
+    gp_p_adaptive: bool
+    planning_timeout: float
+    image_scale: int
+    max_queue: int
+    limits: validation.Limits
+
+
+def build_config(v: dict[str, Any]) -> PlannerConfig:
+    """Parameter values → :class:`PlannerConfig`; ValueError names the offending parameter."""
+    method = planners.canonical_method(str(v['method']))
+    if v['jaw_width'] >= v['max_opening']:
+        raise ValueError(f"jaw_width={v['jaw_width']} m must be smaller than max_opening={v['max_opening']} m")
+    if v['min_resolution'] >= v['max_resolution']:
+        raise ValueError('min_resolution must be smaller than max_resolution')
+    gripper = contacts.GripperParams(jaw_width=float(v['jaw_width']), max_opening=float(v['max_opening']),
+                                     friction_coef=float(v['friction_coefficient']),
+                                     position_noise_cells=float(v['position_noise_cells']))
+    limits = validation.Limits(max_grid_cells=int(v['max_grid_cells']), min_resolution=float(v['min_resolution']),
+                               max_resolution=float(v['max_resolution']))
+    return PlannerConfig(method=method, num_initial_grasps=int(v['num_initial_grasps']),
+                         num_grasp_samples=int(v['num_grasp_samples']), num_shape_samples=int(v['num_shape_samples']),
+                         uncertainty_penalty=float(v['uncertainty_penalty']), gripper=gripper,
+                         antipodal_alpha=float(v['antipodal_alpha']), gp_p_adaptive=bool(v['gp_p_adaptive']),
+                         planning_timeout=float(v['planning_timeout']), image_scale=int(v['image_scale']),
+                         max_queue=int(v['max_queue']), limits=limits)
+
+
+@dataclass(eq=False)
+class PlanJob:
+    """One admitted request (service call or action goal) and its outcome."""
+
+    method: str
+    n: int
+    lam: float
+    seed: int
+    posterior: Any
+    model: Any
+    blur: np.ndarray
+    config: PlannerConfig
+    cancelled: Any = None                 # callable -> reason or None (action cancel)
+    on_progress: Any = None               # callable(PlanProgress)
+    enqueued: float = field(default_factory=time.monotonic)
+    started: float | None = None
+    deadline: float = math.inf
+    result: Any = None
+    error: BaseException | None = None
+    stopped: str = ''
+    done: threading.Event = field(default_factory=threading.Event)
+
+
+class PlannerNode(GuardedNode):
+    """Thin ROS wrapper around :func:`gpis_grasp_ros.core.planners.plan` with a bounded request queue."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__('planner_node', **kwargs)
-        self.method = declare(self, 'method', 'gp-gpis-opt', 'planner used when a request leaves method empty',
-                              choices=list(planners.METHODS))
-        self.num_initial_grasps = declare(self, 'num_initial_grasps', 20,
-                                          'N_g: random initial grasps of GP-GPIS-OPT / GP-D / GP-U (paper: 20)',
-                                          low=1, high=MAX_INITIAL_GRASPS)
-        self.num_grasp_samples = declare(self, 'num_grasp_samples', 1000,
-                                         'K: heuristic grasp samples of GP-M and GP-P (paper: 1000)',
-                                         low=1, high=MAX_GRASP_SAMPLES)
-        self.num_shape_samples = declare(self, 'num_shape_samples', 1000,
-                                         'S: GPIS shape samples of the Monte-Carlo P_F estimate (paper: 1000)',
-                                         low=10, high=100000)
-        self.uncertainty_penalty = declare(self, 'uncertainty_penalty', 2.0,
-                                           'lambda of eq. 4, on variance measured in grid cells^2 (paper: 2.0)',
-                                           low=0.0, high=1000.0)
-        self.jaw_width = declare(self, 'jaw_width', 0.01, 'w_j: width of each jaw face (m)', low=0.0, high=0.2)
-        self.max_opening = declare(self, 'max_opening', 0.09, 'w_g: maximum jaw opening (m)', low=0.005, high=0.5)
-        self.friction = declare(self, 'friction_coefficient', 0.5, 'gamma: Coulomb friction coefficient',
-                                low=0.0, high=5.0)
-        self.alpha = declare(self, 'antipodal_alpha', 0.5,
-                             'alpha of eq. 5: bound on |n1 + n2|^2 of the antipodal constraint', low=0.0, high=4.0)
-        self.position_noise_cells = declare(self, 'position_noise_cells', 0.5,
-                                            'sigma_g: gripper positioning noise in grid cells (paper: sigma_g^2 = '
-                                            '0.25 cells^2)', low=0.0, high=10.0)
-        self.gp_p_adaptive = declare(self, 'gp_p_adaptive', True,
-                                     'GP-P: successive-halving Monte Carlo (true) or every candidate on all S '
-                                     'shape samples as in the paper (false); the final choice uses all S either way')
-        self.planning_timeout = declare(self, 'planning_timeout', 60.0,
-                                        'seconds after which plan_grasp answers success=false', low=0.1, high=3600.0)
-        self.image_scale = declare(self, 'image_scale', 16, 'pixels per grid cell of grasp/image', low=1, high=64)
+        declare(self, 'method', 'gp-gpis-opt', 'planner used when a request leaves method empty',
+                choices=list(planners.METHODS))
+        declare(self, 'num_initial_grasps', 20, 'N_g: random initial grasps of GP-GPIS-OPT / GP-D / GP-U (paper: 20)',
+                low=1, high=MAX_INITIAL_GRASPS)
+        declare(self, 'num_grasp_samples', 1000, 'K: heuristic grasp samples of GP-M and GP-P (paper: 1000)',
+                low=1, high=MAX_GRASP_SAMPLES)
+        declare(self, 'num_shape_samples', 1000, 'S: GPIS shape samples of the Monte-Carlo P_F estimate (paper: 1000)',
+                low=10, high=100000)
+        declare(self, 'uncertainty_penalty', 2.0, 'lambda of eq. 4, on variance measured in grid cells^2 '
+                '(paper: 2.0); requests outside this range are rejected', low=LAMBDA_RANGE[0], high=LAMBDA_RANGE[1])
+        declare(self, 'jaw_width', 0.01, 'w_j: width of each jaw face (m)', low=0.0, high=0.2)
+        declare(self, 'max_opening', 0.09, 'w_g: maximum jaw opening (m)', low=0.005, high=0.5)
+        declare(self, 'friction_coefficient', 0.5, 'gamma: Coulomb friction coefficient', low=0.0, high=5.0)
+        declare(self, 'antipodal_alpha', 0.5, 'alpha of eq. 5: bound on |n1 + n2|^2 of the antipodal constraint',
+                low=0.0, high=4.0)
+        declare(self, 'position_noise_cells', 0.5, 'sigma_g: gripper positioning noise in grid cells (paper: '
+                'sigma_g^2 = 0.25 cells^2)', low=0.0, high=10.0)
+        declare(self, 'gp_p_adaptive', True, 'GP-P: successive-halving Monte Carlo (true) or every candidate on all S '
+                'shape samples as in the paper (false); the final choice uses all S either way')
+        declare(self, 'planning_timeout', 60.0, 'seconds of planning after which a request is stopped and answered '
+                'success=false (queueing time not included)', low=0.1, high=3600.0)
+        declare(self, 'image_scale', 16, 'pixels per grid cell of grasp/image', low=1, high=64)
+        declare(self, 'max_queue', 32, 'requests (service calls + action goals) that may wait for a worker; '
+                "more are answered 'queue full' at once", low=0, high=MAX_QUEUE_LIMIT)
+        self.workers = declare(self, 'workers', 1, 'planning threads working on requests in parallel',
+                               low=1, high=MAX_WORKERS, read_only=True)
+        d = validation.Limits()
+        declare(self, 'max_grid_cells', d.max_grid_cells, 'largest GpisModel grid accepted (cells)',
+                low=16, high=250000)
+        declare(self, 'min_resolution', d.min_resolution, 'smallest GpisModel cell size accepted (m)',
+                low=1e-6, high=0.1)
+        declare(self, 'max_resolution', d.max_resolution, 'largest GpisModel cell size accepted (m)',
+                low=1e-3, high=10.0)
+        self.config: PlannerConfig = watch_parameters(self, build_config, self._apply_config)
+        self.executor_threads = MAX_QUEUE_LIMIT + self.workers + 4
 
         self._lock = threading.Lock()
         self._model: GpisModel | None = None
         self._posterior = None
         self._blur: np.ndarray | None = None
-        self._busy = threading.Lock()
+
+        self._queue: collections.deque[PlanJob] = collections.deque()
+        self._running: set[PlanJob] = set()
+        self._queue_cv = threading.Condition()
+        self._workers = [threading.Thread(target=self._work, name=f'grasp-planning-{i}', daemon=True)
+                         for i in range(self.workers)]
+        for worker in self._workers:
+            worker.start()
 
         self._model_topic = 'gpis/model'
         self.create_subscription(GpisModel, self._model_topic, guarded(self, self._model_topic, self._on_model),
-                                 LATCHED_QOS,
-                                 callback_group=MutuallyExclusiveCallbackGroup())
+                                 LATCHED_QOS, callback_group=MutuallyExclusiveCallbackGroup())
         self.marker_pub = self.create_publisher(MarkerArray, 'grasp/markers', LATCHED_QOS)
         self.image_pub = self.create_publisher(Image, 'grasp/image', LATCHED_QOS)
+        requests = ReentrantCallbackGroup()
         self.create_service(GraspPlan, 'plan_grasp', guarded_service(self, 'plan_grasp', self._on_plan),
-                            callback_group=ReentrantCallbackGroup())
-        self.get_logger().info(f"waiting for a GPIS on '{self.resolve_topic_name(self._model_topic)}'; "
-                               f"serving '{self.resolve_service_name('plan_grasp')}'")
+                            qos_profile=SERVICE_QOS, callback_group=requests)
+        self._action = ActionServer(self, PlanGrasp, 'plan_grasp', execute_callback=self._execute_goal,
+                                    goal_callback=self._on_goal, cancel_callback=lambda _goal: CancelResponse.ACCEPT,
+                                    callback_group=requests)
+        log_startup(self, [self._model_topic], ['grasp/markers', 'grasp/image'],
+                    ['method', 'num_initial_grasps', 'num_shape_samples', 'uncertainty_penalty', 'planning_timeout',
+                     'max_queue', 'workers'], services=['plan_grasp'], actions=['plan_grasp'])
+
+    def _apply_config(self, config: PlannerConfig) -> None:
+        self.config = config
 
     # ------------------------------------------------------------------ model input
     def _on_model(self, msg: GpisModel) -> None:
         try:
+            validation.check_gpis_model(msg, self.config.limits)
             posterior = messages.gpis_model_to_posterior(msg)
-        except ValueError as exc:
-            self.get_logger().warning(f'ignoring malformed GpisModel: {exc}')
+            validation.check_posterior(posterior)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self.get_logger().warning(f'ignoring GpisModel on {self.resolve_topic_name(self._model_topic)}: {exc}; '
+                                      'keeping the previous model')
             return
         blur = gpis_blur(posterior, n_samples=200, rng=np.random.default_rng(0))
         with self._lock:
@@ -104,97 +226,247 @@ class PlannerNode(Node):
         with self._lock:
             return self._posterior is not None
 
-    # ------------------------------------------------------------------ service
-    def _validate(self, request: GraspPlan.Request) -> tuple[str, int, float] | str:
+    # ------------------------------------------------------------------ requests
+    def _make_job(self, method_field: str, n_field: int, lam_field: float, seed_field: int) -> PlanJob | str:
+        """Validate a request (service or goal) → a job, or the reason it is rejected."""
+        config = self.config
         try:
-            method = planners.canonical_method((request.method or self.method).strip().lower())
+            method = planners.canonical_method((method_field or config.method).strip().lower())
         except ValueError:
-            return f"unknown method '{request.method}'; valid: {', '.join(planners.METHODS)}"
+            return f"unknown method '{method_field}'; valid: {', '.join(planners.METHODS)}"
         sampling = method in SAMPLING_METHODS
-        default_n = self.num_grasp_samples if sampling else self.num_initial_grasps
+        default_n = config.num_grasp_samples if sampling else config.num_initial_grasps
         limit = MAX_GRASP_SAMPLES if sampling else MAX_INITIAL_GRASPS
-        n = int(request.num_initial_grasps) or int(default_n)
+        n = int(n_field) or int(default_n)
         if n > limit:
-            return f'num_initial_grasps={request.num_initial_grasps} is too large for {method} (at most {limit})'
-        lam = float(request.uncertainty_penalty)
-        if math.isnan(lam) or math.isinf(lam):
+            return f'num_initial_grasps={n_field} is too large for {method} (at most {limit})'
+        lam = float(lam_field)
+        if not math.isfinite(lam):
             return f'uncertainty_penalty must be a finite number, got {lam}'
         if lam < 0:
-            lam = float(self.uncertainty_penalty)
-        return method, n, lam
-
-    def _on_plan(self, request: GraspPlan.Request, response: GraspPlan.Response) -> GraspPlan.Response:
-        response.success = False
-        checked = self._validate(request)
-        if isinstance(checked, str):
-            response.message = checked
-            return response
-        method, n, lam = checked
+            lam = config.uncertainty_penalty
+        elif lam > LAMBDA_RANGE[1]:
+            return (f'uncertainty_penalty={lam} is outside the parameter range [{LAMBDA_RANGE[0]:g}, '
+                    f'{LAMBDA_RANGE[1]:g}] (negative = use the node parameter)')
         with self._lock:
             model, posterior, blur = self._model, self._posterior, self._blur
         if posterior is None:
-            response.message = ("no GPIS received yet: waiting for a gpis_grasp_interfaces/GpisModel on "
-                                f"'{self.resolve_topic_name(self._model_topic)}'")
-            return response
-        seed = int(request.seed) if request.seed else int(np.random.SeedSequence().entropy % (2 ** 32))
-        params = self._planner_params(posterior, n, lam, sampling=method in SAMPLING_METHODS)
-        if not self._busy.acquire(blocking=False):
-            response.message = 'planner busy with another request (or a timed-out plan still running); retry later'
-            return response
-        outcome: dict = {}
+            return ('no GPIS received yet: waiting for a gpis_grasp_interfaces/msg/GpisModel on '
+                    f"'{self.resolve_topic_name(self._model_topic)}'")
+        seed = int(seed_field) if seed_field else int(np.random.SeedSequence().entropy % (2 ** 32))
+        return PlanJob(method=method, n=n, lam=lam, seed=seed, posterior=posterior, model=model, blur=blur,
+                       config=config)
 
-        def work() -> None:
+    def _submit(self, job: PlanJob) -> str | None:
+        """Queue ``job``; the reason when it cannot be queued (queue full, shutting down)."""
+        with self._queue_cv:
+            if self.shutting_down.is_set():
+                return f'planner_node is {SHUTTING_DOWN}'
+            if len(self._queue) >= job.config.max_queue:
+                return (f'planner queue full: {len(self._queue)} requests waiting (max_queue={job.config.max_queue}) '
+                        f'and {len(self._running)} planning; retry later')
+            self._queue.append(job)
+            self._queue_cv.notify()
+        return None
+
+    def queue_length(self) -> int:
+        """Requests waiting for a worker."""
+        with self._queue_cv:
+            return len(self._queue)
+
+    def _wait(self, job: PlanJob) -> None:
+        """Block until the job is answered (or stopped and overdue by more than STOP_GRACE)."""
+        while not job.done.wait(0.1):
+            if job.started is None and self.shutting_down.is_set() and not any(w.is_alive() for w in self._workers):
+                job.stopped = SHUTTING_DOWN
+                return
+            if job.started is not None and time.monotonic() > job.deadline + STOP_GRACE:
+                job.stopped = job.stopped or 'timeout'
+                self.get_logger().warning(f'{job.method} did not stop within {STOP_GRACE} s of its deadline; '
+                                          'answering the caller without it')
+                return
+
+    def _work(self) -> None:
+        while True:
+            with self._queue_cv:
+                while not self._queue and not self.shutting_down.is_set():
+                    self._queue_cv.wait()
+                if self.shutting_down.is_set():
+                    for job in self._queue:
+                        job.stopped = SHUTTING_DOWN
+                        job.done.set()
+                    self._queue.clear()
+                    return
+                job = self._queue.popleft()
+                self._running.add(job)
             try:
-                outcome['result'] = planners.plan(method, posterior, params, seed=seed)
-            except Exception as exc:  # reported to the caller, never kills the node
-                outcome['error'] = exc
+                self._run(job)
             finally:
-                self._busy.release()
+                with self._queue_cv:
+                    self._running.discard(job)
+                job.done.set()
 
-        start = time.perf_counter()
-        worker = threading.Thread(target=work, name='grasp-planning', daemon=True)
-        worker.start()
-        worker.join(self.planning_timeout)
-        if worker.is_alive():
-            response.message = (f'planning with {method} exceeded planning_timeout={self.planning_timeout:.1f} s; '
-                                'try fewer initial grasps / samples or a larger timeout')
-            response.planning_time = time.perf_counter() - start
-            return response
-        if 'error' in outcome:
-            response.message = f'{method} failed: {outcome["error"]}'
+    def _run(self, job: PlanJob) -> None:
+        job.started = time.monotonic()
+        job.deadline = job.started + job.config.planning_timeout
+
+        def should_stop() -> str | None:
+            if self.shutting_down.is_set():
+                return SHUTTING_DOWN
+            if job.cancelled is not None and job.cancelled():
+                return 'cancelled'
+            if time.monotonic() > job.deadline:
+                return 'timeout'
+            return None
+
+        control = planners.PlanControl(should_stop=should_stop, on_progress=job.on_progress)
+        params = self._planner_params(job)
+        try:
+            job.result = planners.plan(job.method, job.posterior, params, seed=job.seed, control=control)
+            job.stopped = str(getattr(job.result, 'stopped', '') or '')
+        except Exception as exc:  # noqa: BLE001 - reported to the caller, never kills the node
+            job.error = exc
+
+    def _planner_params(self, job: PlanJob) -> planners.PlannerParams:
+        c = job.config
+        sampling = job.method in SAMPLING_METHODS
+        return planners.PlannerParams(
+            gripper=c.gripper, antipodal_alpha=c.antipodal_alpha,
+            n_initial_grasps=c.num_initial_grasps if sampling else job.n,
+            n_grasp_samples=job.n if sampling else c.num_grasp_samples,
+            n_shape_samples=c.num_shape_samples, uncertainty_penalty=job.lam, gp_p_adaptive=c.gp_p_adaptive)
+
+    def _answer(self, response: Any, job: PlanJob) -> Any:
+        """Fill a GraspPlan response (or PlanGrasp result: same fields) from a finished job."""
+        response.success = False
+        response.method = job.method
+        if job.started is not None:
+            response.planning_time = time.monotonic() - job.started
+        if job.stopped == 'timeout':
+            response.message = (f'planning with {job.method} exceeded planning_timeout='
+                                f'{job.config.planning_timeout:.1f} s and was stopped; try fewer initial grasps / '
+                                'samples or a larger timeout')
+        elif job.stopped == SHUTTING_DOWN:
+            response.message = f'planner_node is {SHUTTING_DOWN}; request not completed'
+        elif job.stopped == 'cancelled':
+            response.message = 'cancelled by the client'
+        elif job.stopped:
+            response.message = f'stopped: {job.stopped}'
+        elif job.error is not None:
+            response.message = f'{job.method} failed: {type(job.error).__name__}: {job.error}'
             self.get_logger().error(response.message)
-            return response
-        result = outcome['result']
-        conversions.fill_grasp_plan_response(response, result, model.header, z=posterior.geometry.z)
-        if result.success:
-            self._publish_visuals(result, posterior, blur, model.header)
-        self.get_logger().info(f'{method}: {response.message} (P_F={result.p_f:.2f}, {result.planning_time:.2f} s)')
+        elif job.result is not None:
+            result = job.result
+            conversions.fill_grasp_plan_response(response, result, job.model.header,
+                                                 z=job.posterior.geometry.z)
+            finite = np.isfinite(np.concatenate([np.ravel(result.jaw1), np.ravel(result.jaw2)])).all()
+            if response.success and not finite:
+                response.success = False
+                response.message = f'{job.method} returned non-finite jaw positions; not a valid grasp'
+            if response.success:
+                self._publish_visuals(result, job)
+            self.get_logger().info(f'{job.method}: {response.message} (P_F={float(result.p_f):.2f}, '
+                                   f'{float(result.planning_time):.2f} s)')
+        else:
+            response.message = 'planning did not finish'
         return response
 
-    def _planner_params(self, posterior, n: int, lam: float, sampling: bool):
-        gripper = contacts.GripperParams(jaw_width=self.jaw_width, max_opening=self.max_opening,
-                                         friction_coef=self.friction, position_noise_cells=self.position_noise_cells)
-        return planners.PlannerParams(
-            gripper=gripper, antipodal_alpha=self.alpha,
-            n_initial_grasps=self.num_initial_grasps if sampling else n,
-            n_grasp_samples=n if sampling else self.num_grasp_samples,
-            n_shape_samples=self.num_shape_samples, uncertainty_penalty=lam, gp_p_adaptive=self.gp_p_adaptive)
+    def _on_plan(self, request: GraspPlan.Request, response: GraspPlan.Response) -> GraspPlan.Response:
+        response.success = False
+        job = self._make_job(request.method, request.num_initial_grasps, request.uncertainty_penalty, request.seed)
+        if isinstance(job, str):
+            response.message = job
+            return response
+        refused = self._submit(job)
+        if refused is not None:
+            response.message = refused
+            return response
+        self._wait(job)
+        return self._answer(response, job)
 
-    def _publish_visuals(self, result, posterior, blur, header) -> None:
+    # ------------------------------------------------------------------ action
+    def _on_goal(self, _goal: Any) -> GoalResponse:
+        # Every goal is accepted and answered with a result; invalid or refused goals are aborted
+        # with the reason in result.message (a rejected goal could not say why).
+        return GoalResponse.ACCEPT
+
+    def _execute_goal(self, goal_handle: Any) -> PlanGrasp.Result:
+        self.enter_callback()
+        try:
+            return self._execute_goal_inner(goal_handle)
+        finally:
+            self.exit_callback()
+
+    def _execute_goal_inner(self, goal_handle: Any) -> PlanGrasp.Result:
+        result = PlanGrasp.Result()
+        result.success = False
+        goal = goal_handle.request
+        job = self._make_job(goal.method, goal.num_initial_grasps, goal.uncertainty_penalty, goal.seed)
+        if isinstance(job, str):
+            result.message = job
+            goal_handle.abort()
+            return result
+        start = time.monotonic()
+
+        def progress(p: planners.PlanProgress) -> None:
+            fb = PlanGrasp.Feedback(restarts_done=int(p.restarts_done), restarts_total=int(p.restarts_total),
+                                    best_objective=float(p.best_objective),
+                                    best_probability_force_closure=float(p.best_p_f),
+                                    elapsed=time.monotonic() - start)
+            try:
+                goal_handle.publish_feedback(fb)
+            except Exception:  # noqa: BLE001 - feedback is best effort (e.g. during shutdown)
+                pass
+
+        job.cancelled = lambda: goal_handle.is_cancel_requested
+        job.on_progress = progress
+        refused = self._submit(job)
+        if refused is not None:
+            result.message = refused
+            goal_handle.abort()
+            return result
+        self._wait(job)
+        self._answer(result, job)
+        if job.stopped == 'cancelled':
+            goal_handle.canceled()
+        elif result.success:
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
+        return result
+
+    # ------------------------------------------------------------------ shutdown
+    def begin_shutdown(self) -> None:
+        with self._queue_cv:
+            super().begin_shutdown()
+            self._queue_cv.notify_all()
+
+    def destroy_node(self) -> None:
+        self.begin_shutdown()
+        try:
+            self._action.destroy()
+        except Exception:  # noqa: BLE001 - already destroyed
+            pass
+        super().destroy_node()
+
+    # ------------------------------------------------------------------ visuals
+    def _publish_visuals(self, result, job: PlanJob) -> None:
+        posterior, header = job.posterior, job.model.header
+        jaw_width = job.config.gripper.jaw_width
         bank = contacts.SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
-        con = contacts.find_contacts(bank, result.jaw1, result.jaw2, contacts.GripperParams(jaw_width=self.jaw_width),
+        con = contacts.find_contacts(bank, result.jaw1, result.jaw2, contacts.GripperParams(jaw_width=jaw_width),
                                      check_opening=False)
         touches = np.stack([np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]])
         if not bool(np.ravel(con.valid)[0]):
             touches = None
-        self.marker_pub.publish(conversions.grasp_markers(result, header, posterior.geometry, self.jaw_width,
+        self.marker_pub.publish(conversions.grasp_markers(result, header, posterior.geometry, jaw_width,
                                                           contacts_xy=touches))
-        overlay = viz.grasp_overlay(blur, posterior.geometry, [result], scale=self.image_scale,
-                                    jaw_width_m=self.jaw_width)
-        self.image_pub.publish(messages.numpy_to_image(conversions.RclpyFactory(), overlay, 'rgb8',
-                                                          messages.header(conversions.RclpyFactory(),
-                                                                             messages.stamp_to_ns(header.stamp),
-                                                                             header.frame_id)))
+        overlay = viz.grasp_overlay(job.blur, posterior.geometry, [result], scale=job.config.image_scale,
+                                    jaw_width_m=jaw_width)
+        factory = conversions.RclpyFactory()
+        self.image_pub.publish(messages.numpy_to_image(factory, overlay, 'rgb8',
+                                                       messages.header(factory, messages.stamp_to_ns(header.stamp),
+                                                                       header.frame_id)))
 
 
 def main(args: list[str] | None = None) -> int:
