@@ -1,7 +1,7 @@
 """Calibration study: is the predicted probability of force closure a probability?
 
 For every object, a set of grasps — every grasp planned in the Table I run plus
-``calibration_candidates`` of GP-P's heuristic candidates chosen to span low to high P_F — is
+``calibration_candidates`` candidate grasps chosen to span low to high P_F — is
 given three *predictions* of its success probability and an *outcome*:
 
 * ``p_tilde_hard`` — P̃_F from GP-M's quality: the fraction of jaw perturbations (σ_g, section
@@ -19,9 +19,11 @@ executions on the bag's ground-truth shape
 simulated gripper of ``gripper_sim_node``).
 
 **Candidate choice.** K heuristic candidates (GP-P's generator,
-:func:`~gpis_grasp_ros.core.planners.sample_heuristic_grasps`) are screened by P_F on a
-*screening* sample set; for each of ``n`` target values evenly spaced in [0, 1] the unused
-candidate with the nearest screening P_F is taken. The predictions use other samples, so the
+:func:`~gpis_grasp_ros.core.planners.sample_heuristic_grasps`) plus K random grasps around the
+object (:func:`random_grasps`; on some objects every heuristic candidate has P_F > 0.9, and a
+calibration study needs the whole range) are screened by P_F on a *screening* sample set; for
+each of ``n`` target values evenly spaced in [0, 1] the unused candidate with the nearest
+screening P_F is taken. The predictions use other samples, so the
 choice does not bias them (no winner's curse).
 
 **Metrics** (:func:`expected_calibration_error`, :func:`brier_score`): ECE with 10 equal-width
@@ -39,6 +41,10 @@ positive ECE; :func:`null_ece` gives that floor (ECE of outcomes drawn from the 
 * GP z-scores of the true SDF at the planning cells, ``(sdf_true − μ) / σ``: RMS ≈ 1 and 95 % of
   |z| < 1.96 for a calibrated GP; RMS > 1 is over-confidence (variance too small), < 1
   under-confidence. Reported over all cells and near the true surface (|sdf_true| < 2 cells).
+* ``p_f_inflated`` — P_F with every shape sample's deviation from the mean scaled by the RMS z near
+  the surface (clipped to [1, 20]): if GP over-confidence is the cause, this P_F is better calibrated;
+  if the mean shape itself is wrong where σ is small (e.g. a transparent part seen as free table
+  with a low noise value), inflating σ helps little.
 """
 
 from __future__ import annotations
@@ -51,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, bilinear, find_contacts, perturb_grasps
-from gpis_grasp_ros.core.gpis import GpisPosterior
+from gpis_grasp_ros.core.gpis import GpisPosterior, center_of_mass
 from gpis_grasp_ros.core.planners import (
     MeanGraspObjective,
     PlannerParams,
@@ -59,7 +65,7 @@ from gpis_grasp_ros.core.planners import (
     execute_grasp_trials,
     sample_heuristic_grasps,
 )
-from gpis_grasp_ros.core.quality import draw_shape_samples, grasp_quality, probability_force_closure
+from gpis_grasp_ros.core.quality import ShapeSamples, draw_shape_samples, grasp_quality, probability_force_closure
 
 #: The three predictors: column of the calibration rows, label for tables and figures.
 PREDICTORS: tuple[tuple[str, str], ...] = (
@@ -67,6 +73,9 @@ PREDICTORS: tuple[tuple[str, str], ...] = (
     ('p_tilde_smooth', 'P̃_F as GP-G optimises it (mean shape, smoothed)'),
     ('p_f', 'P_F (Monte Carlo over shape samples)'),
 )
+#: Diagnostic predictors (not the planners'): P_F with the true shape, P_F with σ inflated.
+DIAGNOSTICS: dict[str, str] = {'p_true_grid': 'P_F with the true shape on the planning grid (diagnostic)',
+                               'p_f_inflated': 'P_F with σ inflated by the z RMS (diagnostic)'}
 N_BINS = 10
 
 
@@ -160,7 +169,7 @@ def summarise(rows: Sequence[dict[str, Any]], rng: np.random.Generator | None = 
     s = np.array([r['sim_successes'] for r in rows], dtype=np.float64)
     n = np.array([r['sim_trials'] for r in rows], dtype=np.float64)
     rng = np.random.default_rng(0) if rng is None else rng
-    keys = [k for k, _ in PREDICTORS] + (['p_true_grid'] if all('p_true_grid' in r for r in rows) else [])
+    keys = [k for k, _ in PREDICTORS] + [k for k in DIAGNOSTICS if all(k in r for r in rows)]
     for key in keys:
         p = np.array([r[key] for r in rows], dtype=np.float64)
         null_mean, null_p95 = null_ece(p, n, rng, null_repeats)
@@ -173,6 +182,27 @@ def summarise(rows: Sequence[dict[str, Any]], rng: np.random.Generator | None = 
 # ------------------------------------------------------------------------------------------
 # One object
 # ------------------------------------------------------------------------------------------
+
+
+def random_grasps(ctx: PlanningContext, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` grasps with centres uniform over the mean shape's bounding box (grown by 2 cells), uniform
+    closing directions and the full opening w_g: many miss or barely touch the object (low P_F)."""
+    inside = np.asarray(ctx.posterior.mean) < 0
+    g = ctx.geometry
+    pts = g.cell_centers()[inside] if inside.any() else g.cell_centers().reshape(-1, 2)
+    lo, hi = pts.min(axis=0) - 2 * g.resolution, pts.max(axis=0) + 2 * g.resolution
+    centre = rng.uniform(lo, hi, (n, 2))
+    theta = rng.uniform(0.0, np.pi, n)
+    u = np.stack([np.cos(theta), np.sin(theta)], axis=1) * 0.5 * ctx.gripper.max_opening
+    return centre - u, centre + u
+
+
+def candidate_pool(ctx: PlanningContext, k: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """GP-P's ``k`` heuristic candidates plus ``k`` :func:`random_grasps` (so the pool reaches low P_F
+    even where every heuristic candidate is good)."""
+    h1, h2 = sample_heuristic_grasps(ctx, k, rng)
+    r1, r2 = random_grasps(ctx, k, rng)
+    return np.concatenate([h1, r1]), np.concatenate([h2, r2])
 
 
 def spread_by_value(values: np.ndarray, n: int) -> np.ndarray:
@@ -213,6 +243,15 @@ def true_shape_bank(true_sdf: np.ndarray, true_geometry: Any, geometry: Any) -> 
     return SdfBank(bilinear(true_sdf, true_geometry, geometry.cell_centers())[None], geometry)
 
 
+def inflated_shape_samples(posterior: GpisPosterior, n: int, factor: float, rng: np.random.Generator,
+                           rho: float) -> ShapeSamples:
+    """``n`` joint samples with their deviations from the mean scaled by ``factor`` (σ × factor), for P_F."""
+    mean = np.asarray(posterior.mean, dtype=np.float64)
+    sdfs = mean[None] + factor * (posterior.sample(n, rng) - mean[None])
+    eps = rng.standard_normal((n, 2, 2))
+    return ShapeSamples(SdfBank(sdfs, posterior.geometry), center_of_mass(sdfs, posterior.geometry), eps, rho)
+
+
 def gp_z_scores(posterior: GpisPosterior, true_sdf: np.ndarray, true_geometry: Any) -> dict[str, float]:
     """RMS of z = (sdf_true − μ) / σ at the planning cells, all cells and near the true surface, and 95 % coverage."""
     g = posterior.geometry
@@ -238,9 +277,9 @@ def calibrate_object(posterior: GpisPosterior, true_sdf: np.ndarray, true_geomet
     if trials < 1:
         raise ValueError('the calibration study needs at least one execution per grasp')
     ctx = PlanningContext(posterior, params)
-    streams = [np.random.default_rng(c) for c in np.random.SeedSequence(seed).spawn(7)]
-    rng_cand, rng_screen, rng_pred, rng_tilde, rng_smooth, rng_exec, rng_true = streams
-    j1c, j2c = sample_heuristic_grasps(ctx, params.n_grasp_samples, rng_cand)
+    streams = [np.random.default_rng(c) for c in np.random.SeedSequence(seed).spawn(8)]
+    rng_cand, rng_screen, rng_pred, rng_tilde, rng_smooth, rng_exec, rng_true, rng_inflate = streams
+    j1c, j2c = candidate_pool(ctx, params.n_grasp_samples, rng_cand)
     screen_p = np.zeros(0)
     if n_candidates > 0 and j1c.shape[0]:
         screen = draw_shape_samples(posterior, params.n_shape_samples, rng_screen, rho=ctx.rho)
@@ -266,6 +305,13 @@ def calibrate_object(posterior: GpisPosterior, true_sdf: np.ndarray, true_geomet
     g = ctx.geometry
     x = np.concatenate([g.to_cell(jaw1), g.to_cell(jaw2)], axis=1)
     p_smooth = np.asarray(objective.details(x)['pf_smoothed'], dtype=np.float64) if x.shape[0] else np.zeros(0)
+    z_info = gp_z_scores(posterior, true_sdf, true_geometry)
+    inflation = float(np.clip(z_info['gp_z_rms_near_surface'], 1.0, 20.0)) if math.isfinite(
+        z_info['gp_z_rms_near_surface']) else 1.0
+    z_info['sigma_inflation'] = inflation
+    p_inflated = probability_force_closure(
+        jaw1, jaw2, inflated_shape_samples(posterior, params.n_shape_samples, inflation, rng_inflate, ctx.rho),
+        ctx.gripper, ctx.sigma_g).p
     eps_true = rng_true.standard_normal((n_perturbations, 2, 2))
     p_true = perturbation_pf(ctx, true_shape_bank(true_sdf, true_geometry, g), jaw1, jaw2, eps_true)
     q_mean = ctx.mean_quality(jaw1, jaw2)
@@ -283,8 +329,8 @@ def calibrate_object(posterior: GpisPosterior, true_sdf: np.ndarray, true_geomet
             'jaw2_x': float(jaw2[i, 0]), 'jaw2_y': float(jaw2[i, 1]),
             'screen_p_f': float(screen_all[i]), 'p_f': float(pf.p[i]), 'p_f_std_error': float(pf.std_error[i]),
             'reported_p_f': reported, 'p_tilde_hard': float(p_hard[i]), 'p_tilde_smooth': float(p_smooth[i]),
-            'p_true_grid': float(p_true[i]),
+            'p_true_grid': float(p_true[i]), 'p_f_inflated': float(p_inflated[i]),
             'q_f_mean': float(q_mean[i]) if math.isfinite(q_mean[i]) else float('nan'),
             'sim_successes': int(succ), 'sim_trials': int(trials), 'sim_success_rate': succ / trials,
         })
-    return rows, gp_z_scores(posterior, true_sdf, true_geometry)
+    return rows, z_info

@@ -95,7 +95,7 @@ PAPER_SCALING: dict[str, tuple[float, float]] = {
 
 #: Columns of results.csv that hold wall-clock times (excluded from serial/parallel identity).
 TIME_COLUMNS = ('planning_time_s', 'evaluation_time_s')
-OBJECT_TIME_COLUMNS = ('sensing_time_s', 'gpis_fit_time_s', 'object_wall_time_s')
+OBJECT_TIME_COLUMNS = ('sensing_time_s', 'gpis_fit_time_s', 'object_wall_time_s', 'calibration_time_s')
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 

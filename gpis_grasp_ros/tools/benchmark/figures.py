@@ -22,7 +22,7 @@ from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from gpis_grasp_ros.core.grid import GridGeometry  # noqa: E402
-from gpis_grasp_ros.tools.benchmark.calibration import N_BINS, PREDICTORS, reliability  # noqa: E402
+from gpis_grasp_ros.tools.benchmark.calibration import DIAGNOSTICS, N_BINS, PREDICTORS, reliability  # noqa: E402
 from gpis_grasp_ros.tools.benchmark.evaluation import (  # noqa: E402
     METHOD_BY_KEY,
     PAPER_TABLE1,
@@ -246,9 +246,9 @@ def reliability_figure(rows: Sequence[dict[str, Any]], summary: dict[str, dict[s
     Every grasp is a dot (prediction, simulated success rate); squares are the bin means (10 equal-
     width bins); the grey bars at the bottom show how many grasps fall in each bin.
     """
-    keys = [k for k, _ in PREDICTORS] + (['p_true_grid'] if rows and 'p_true_grid' in rows[0] else [])
-    labels = dict(PREDICTORS) | {'p_true_grid': 'P_F with the true shape on the planning grid (diagnostic)'}
-    fig = Figure(figsize=(3.6 * len(keys), 4.0))
+    keys = [k for k, _ in PREDICTORS] + [k for k in DIAGNOSTICS if rows and k in rows[0]]
+    labels = dict(PREDICTORS) | DIAGNOSTICS
+    fig = Figure(figsize=(3.4 * len(keys), 4.0))
     s = np.array([r['sim_successes'] for r in rows], dtype=np.float64)
     n = np.array([r['sim_trials'] for r in rows], dtype=np.float64)
     for i, key in enumerate(keys):

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from gpis_grasp_ros.tools.benchmark.calibration import PREDICTORS, summarise
+from gpis_grasp_ros.tools.benchmark.calibration import DIAGNOSTICS, PREDICTORS, summarise
 from gpis_grasp_ros.tools.benchmark.evaluation import METHOD_BY_KEY, PAPER_COLUMNS, PAPER_TABLE1, BenchmarkResult
 
 # ------------------------------------------------------------------------------------------
@@ -153,35 +153,48 @@ def table1_markdown(result: BenchmarkResult) -> str:
         'per object with one BLAS thread; tables give the worst case over seeds (the paper\'s statistic) and the '
         'median over seeds.', '',
     ]
-    header = ['Object'] + [METHOD_BY_KEY[k].label for k in PAPER_COLUMNS] + ['GP-P time (s)', 'GP-G time (s)',
-                                                                                 'GP-P / GP-G (worst)',
-                                                                                 'GP-P / GP-G (median)']
+    have = set(s.methods)
+    cols = [k for k in PAPER_COLUMNS if k in have]
+    timed = {'gp-p', 'gp-g'} <= have
+    header = ['Object'] + [METHOD_BY_KEY[k].label for k in cols]
+    if timed:
+        header += ['GP-P time (s)', 'GP-G time (s)', 'GP-P / GP-G (worst)', 'GP-P / GP-G (median)']
     rows = []
     for o in objs:
         paper = PAPER_TABLE1.get(o.letter, {})
         r = [o.letter]
-        for k in PAPER_COLUMNS:
+        for k in cols:
             c = cells[(o.object, k)]
             ref = f' ({paper[k]:.2f})' if k in paper else ''
             r.append(f'{_f2(c.p_f)}{ref}' + (f' [{c.failures} failed]' if c.failures else ''))
-        tp, tg = cells[(o.object, 'gp-p')].time_worst, cells[(o.object, 'gp-g')].time_worst
-        r.append(_time(tp) + (f' ({paper["time_gp-p"]:g})' if paper else ''))
-        r.append(_time(tg) + (f' ({paper["time_gp-g"]:g})' if paper else ''))
-        ratio_ref = f' ({paper["time_gp-p"] / paper["time_gp-g"]:.1f}x)' if paper else ''
-        r.append(f'{tp / max(tg, 1e-9):.1f}x{ratio_ref}')
-        mp, mg = cells[(o.object, 'gp-p')].time_median, cells[(o.object, 'gp-g')].time_median
-        r.append(f'{mp / max(mg, 1e-9):.1f}x')
+        if timed:
+            tp, tg = cells[(o.object, 'gp-p')].time_worst, cells[(o.object, 'gp-g')].time_worst
+            r.append(_time(tp) + (f' ({paper["time_gp-p"]:g})' if paper else ''))
+            r.append(_time(tg) + (f' ({paper["time_gp-g"]:g})' if paper else ''))
+            ratio_ref = f' ({paper["time_gp-p"] / paper["time_gp-g"]:.1f}x)' if paper else ''
+            r.append(f'{tp / max(tg, 1e-9):.1f}x{ratio_ref}')
+            mp, mg = cells[(o.object, 'gp-p')].time_median, cells[(o.object, 'gp-g')].time_median
+            r.append(f'{mp / max(mg, 1e-9):.1f}x')
         rows.append(r)
     lines += _table(header, rows)
     g = goal_figures(result)
     n = g['n_objects']
-    lines += ['', f'GP-G P_F ≥ GP-P − 0.05 on {len(g["gp_g_within_0.05_of_gp_p"])} of {n} objects '
-              f'({", ".join(g["gp_g_within_0.05_of_gp_p"]) or "none"}); GP-G P_F > GP-M on '
-              f'{len(g["gp_g_above_gp_m"])} of {n} ({", ".join(g["gp_g_above_gp_m"]) or "none"}). '
-              f'Per-object time ratio GP-P / GP-G of the worst-case times: mean {g["time_ratio_mean"]:.1f}x, median '
-              f'{g["time_ratio_median"]:.1f}x over objects (ratio of the mean worst-case times '
-              f'{g["time_ratio_of_mean_times"]:.1f}x); of the median times: mean {g["time_ratio_median_mean"]:.1f}x, '
-              f'median {g["time_ratio_median_median"]:.1f}x. Paper: 5.7x ("averaged over all shapes").', '']
+    lines += ['']
+    if 'gp_g_within_0.05_of_gp_p' in g:
+        lines += [f'GP-G P_F ≥ GP-P − 0.05 on {len(g["gp_g_within_0.05_of_gp_p"])} of {n} objects '
+                  f'({", ".join(g["gp_g_within_0.05_of_gp_p"]) or "none"}). Per-object time ratio GP-P / GP-G of the '
+                  f'worst-case times: mean {g["time_ratio_mean"]:.1f}x, median {g["time_ratio_median"]:.1f}x over '
+                  f'objects (ratio of the mean worst-case times {g["time_ratio_of_mean_times"]:.1f}x); of the median '
+                  f'times: mean {g["time_ratio_median_mean"]:.1f}x, median {g["time_ratio_median_median"]:.1f}x. '
+                  'Paper: 5.7x ("averaged over all shapes").']
+    if 'gp_g_above_gp_m' in g:
+        above = g['gp_g_above_gp_m']
+        lines += [f'GP-G P_F > GP-M on {len(above)} of {n} ({", ".join(above) or "none"}).']
+    refused = [f'{o.letter} ({o.info["segmentation_refusal"]})' for o in objs if o.info.get('segmentation_refusal')]
+    if refused:
+        lines += ['', 'Segmentation with the node defaults refused: ' + '; '.join(refused)
+                  + '. The benchmark evaluated these objects with that check off.']
+    lines += ['']
     conv = [f'{METHOD_BY_KEY[k].label} {100 * g[f"restarts_converged_{k}"]:.0f} %'
             for k in ('gp-d', 'gp-u', 'gp-g', 'gp-d-single', 'gp-u-single') if f'restarts_converged_{k}' in g]
     if conv:
@@ -259,9 +272,9 @@ def calibration_markdown(result: BenchmarkResult, summary: dict[str, Any] | None
     summary = calibration_summary(result) if summary is None else summary
     rows = result.calibration_rows
     n_planned = sum(1 for r in rows if r['kind'] == 'planned')
-    keys = [k for k, _ in PREDICTORS] + ['p_true_grid']
+    keys = [k for k, _ in PREDICTORS] + list(DIAGNOSTICS)
     labels = {'p_tilde_hard': "P̃_F (GP-M's Q_F)", 'p_tilde_smooth': 'P̃_F (GP-G, smoothed)', 'p_f': 'P_F',
-              'p_true_grid': 'P_F, true shape on the grid'}
+              'p_true_grid': 'P_F, true shape on the grid', 'p_f_inflated': 'P_F, σ inflated by z RMS'}
     lines = ['# Calibration: predicted probability of force closure vs simulated executions', '',
              f'{len(rows)} grasps on {len(result.objects)} objects: {n_planned} planned in the Table I run and up '
              f'to {s.calibration_candidates} GP-P candidates per object spread over P_F; each executed '
@@ -271,8 +284,9 @@ def calibration_markdown(result: BenchmarkResult, summary: dict[str, Any] | None
              f'{s.shape_samples} shape samples independent of the candidate choice. ECE with 10 equal-width bins; '
              'Brier score per execution; bias = mean(prediction − success rate) (> 0: over-confident); null ECE = '
              'mean ECE of a perfectly calibrated predictor with the same predictions and executions (the floor set '
-             'by the finite number of executions). The last predictor is a diagnostic: P_F with the true shape '
-             'resampled on the planning grid (no GP).', '']
+             'by the finite number of executions). The last two predictors are diagnostics: P_F with the true shape '
+             'resampled on the planning grid (no GP), and P_F with the GPIS deviations scaled by the RMS z-score '
+             'of the true SDF near the surface (per object, "σ ×" column).', '']
     header = ['predictor', 'ECE', 'null ECE (mean / p95)', 'Brier', 'bias', 'ECE planned only']
     body = []
     for k in keys:
@@ -284,7 +298,7 @@ def calibration_markdown(result: BenchmarkResult, summary: dict[str, Any] | None
                      f'{m["brier"]:.3f}', f'{m["bias"]:+.3f}', f'{mp.get("ece", float("nan")):.3f}'])
     lines += ['## All objects', ''] + _table(header, body, 'lrrrrr')
     lines += ['', '## Per object: ECE / Brier', '']
-    header = ['Object'] + [labels[k] for k in keys] + ['GP z RMS all / near surface', '95 % coverage']
+    header = ['Object'] + [labels[k] for k in keys] + ['GP z RMS all / near surface', '95 % coverage', 'σ ×']
     body = []
     for o in result.objects:
         m = summary['objects'].get(o.letter, {})
@@ -292,6 +306,7 @@ def calibration_markdown(result: BenchmarkResult, summary: dict[str, Any] | None
         i = o.info
         r.append(f'{i["gp_z_rms"]:.2f} / {i["gp_z_rms_near_surface"]:.2f}' if 'gp_z_rms' in i else '—')
         r.append(f'{i["gp_coverage95"]:.2f}' if 'gp_coverage95' in i else '—')
+        r.append(f'{i["sigma_inflation"]:.1f}' if 'sigma_inflation' in i else '—')
         body.append(r)
     lines += _table(header, body)
     lines += ['']
