@@ -30,7 +30,9 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    above the plane (h > -band, below ``max_object_height_m``), over the table's extent (the convex
    hull of the plane's inliers) and inside the region of interest (``roi_px`` pixel box and/or
    ``roi_table`` box in the table frame). Each evidence pixel is projected **orthographically**
-   onto the plane (its foot p - h n; a missing pixel where its ray meets the plane) and
+   onto the plane (its foot p - h n; a missing pixel is put on its ray at the mean height of the
+   pixels seen above the table within ``MISSING_HEIGHT_WINDOW_M`` around it, else where the ray
+   meets the plane) and
    rasterised at about two pixel footprints; the raster is closed (3 x 3) and split into 8-connected
    components; components under ``min_object_area_px`` pixels or ``min_object_area_m2`` are
    specks. The number of objects seen is reported (``objects_seen``). ``target`` picks one:
@@ -99,6 +101,7 @@ from gpis_grasp_ros.core.sdf import signed_distance
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 TARGET_MODES = ('largest', 'nearest_center', 'pixel', 'table')
+MISSING_HEIGHT_WINDOW_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -410,13 +413,27 @@ class _Raster:
         return idx[..., 0], idx[..., 1], ok
 
 
+def _missing_height(height: np.ndarray, above: np.ndarray, footprint_m: float,
+                    window_m: float = MISSING_HEIGHT_WINDOW_M) -> np.ndarray:
+    """Height (m) assumed for pixels without depth: the mean height of the pixels seen above the table
+    within ``window_m`` (on the table) around them, 0 (on the table) if there are fewer than 3.
+
+    A hole on the top of a tall object (specular or transparent) is thereby projected next to that
+    object's visible parts, not onto the table far behind it where its ray would meet the plane."""
+    k = max(3, 2 * int(round(0.5 * window_m / max(footprint_m, 1e-6))) + 1)
+    h = np.where(above, np.nan_to_num(height), 0.0).astype(np.float32)
+    total = cv2.boxFilter(h, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    count = cv2.boxFilter(above.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return np.where(count >= 3, total / np.maximum(count, 1.0), 0.0).astype(np.float64)
+
+
 def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, inlier_xy: np.ndarray,
                       footprint_m: float) -> tuple[_Raster, np.ndarray]:
     """Rasterise the evidence pixels' feet over the table's extent and label connected components.
 
     Returns the raster and the per-pixel labels (0 = not evidence or off the table)."""
     lo, hi = inlier_xy.min(axis=0), inlier_xy.max(axis=0)
-    res = max(1e-3, 2.0 * footprint_m)
+    res = max(5e-4, 2.0 * footprint_m)
     while np.prod((hi - lo) / res) > 4e6:
         res *= 1.5
     nx, ny = (int(v) + 1 for v in np.ceil((hi - lo) / res))
@@ -650,8 +667,15 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     occ = np.where(missing_px, 1.0, occ)
 
     # 5. orthographic feet on the table; evidence above the plane, on the table, in the ROI; the target
+    footprint = float(np.median(z_mean[inlier])) / min(intrinsics.fx, intrinsics.fy) / max(
+        math.cos(math.radians(table.tilt_deg)), 0.3)
+    h_missing = _missing_height(height, valid & (np.nan_to_num(height) > h_thr), footprint)
     hit_points, hit = table.ray_intersection(rays)
-    foot = np.where(valid[..., None], points - np.nan_to_num(height)[..., None] * normal, hit_points)
+    ray_dot = rays @ normal
+    with np.errstate(invalid='ignore', divide='ignore'):
+        t_missing = np.where(hit, (h_missing - table.offset_m) / np.where(hit, ray_dot, -1.0), np.nan)
+    missing_points = rays * t_missing[..., None] - h_missing[..., None] * normal
+    foot = np.where(valid[..., None], points - np.nan_to_num(height)[..., None] * normal, missing_points)
     foot_xy, _ = table.to_table(foot)
     foot_xy = np.where((valid | hit)[..., None], foot_xy, np.nan)
     evidence = (occ > 0.5) | (p_d > 0.5) | (p_c > 0.5) | missing_px
@@ -669,8 +693,6 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         fx_, fy_ = foot_xy[..., 0], foot_xy[..., 1]
         evidence &= (fx_ >= x0) & (fx_ <= x1) & (fy_ >= y0) & (fy_ <= y1)
     inlier_xy = foot_xy[inlier]
-    footprint = float(np.median(z_mean[inlier])) / min(intrinsics.fx, intrinsics.fy) / max(
-        math.cos(math.radians(table.tilt_deg)), 0.3)
     raster, px_labels = _table_components(foot_xy, evidence, inlier_xy, footprint)
     target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics)
     target_px = px_labels == target

@@ -12,6 +12,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     'make-bag': ('gpis_grasp_ros.tools.scene_cli', 'simulate a Carmine looking at an object and write an MCAP bag'),
     'make-bags': ('gpis_grasp_ros.sim.objects', 'regenerate the 8 shipped object bags in bags/'),
+    'import-rgbd': ('gpis_grasp_ros.tools.import_rgbd', 'real RGB-D capture (colour, depth, intrinsics) to a bag'),
     'play': ('gpis_grasp_ros.ros.player', 'replay a bag with rclpy publishers (ros2 bag play stand-in)'),
     'demo': ('gpis_grasp_ros.tools.demo', 'replay a bag through the nodes, plan, execute, write images'),
     'benchmark': ('gpis_grasp_ros.tools.benchmark', "reproduce the paper's Table I and runtime scaling"),

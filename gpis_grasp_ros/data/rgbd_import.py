@@ -1,0 +1,363 @@
+"""Real RGB-D captures as users have them → bags in the shipped layout (ROS-free).
+
+Inputs (:func:`load_capture`):
+
+* **colour**: any image OpenCV reads (PNG, JPEG, ...), 8-bit, converted to RGB.
+* **depth**: a 16-bit PNG in millimetres (0 = no return; ``depth_scale`` m per unit, default
+  0.001), a 32-bit float image (TIFF/EXR/PFM, metres), or a ``.npy`` array (integer = millimetres,
+  float = metres). Non-finite and <= 0 values are "no return" (NaN).
+* **intrinsics** (:func:`load_intrinsics`): a YAML file (or mapping) with ``fx, fy, cx, cy`` and
+  optionally ``width, height`` (aliases ``xres, yres``), or CameraInfo-like values: ``K`` / ``k``
+  (row-major 3 x 3) with ``width``, ``height``, or the ROS camera_calibration layout
+  ``camera_matrix: {data: [...]}`` with ``image_width``, ``image_height``. Images must be
+  registered (depth in the colour camera's frame) and undistorted.
+
+Optional **crop** (pixel box) and **downscale** factor keep bags small; the intrinsics follow
+(crop: cx, cy shift; scaling by s: f' = s f, c' = s (c + 0.5) - 0.5). Depth is downscaled by
+taking the nearest sample (no mixing of foreground and background depths), colour by area
+averaging.
+
+Optional **ground truth** (:func:`ground_truth_from_mask`) for evaluation: a target mask (the
+mask's connected component containing a target pixel) and a depth image of the true shape
+(e.g. the same scene with opaque copies of transparent objects). Its surface points are projected
+orthographically onto the table plane (:mod:`~gpis_grasp_ros.core.table_frame`; the plane
+fitted to the capture's own depth exactly as :func:`~gpis_grasp_ros.core.sensing.segment_frames`
+fits it, so the ground truth's grid (x, y) are the segmentation grid's), rasterised at
+``resolution`` and closed; the ground truth is that footprint's signed distance (m, positive
+outside), its centre of mass and its outline, on a grid in the table frame.
+
+:func:`write_capture_bag` writes one frame (one frame is one frame: no repeats) with the topics
+and QoS of the simulated bags (:func:`gpis_grasp_ros.sim.scene.write_scene_bag`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.sdf import signed_distance
+from gpis_grasp_ros.core.sensing import CameraIntrinsics
+from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
+from gpis_grasp_ros.data import bagio, messages
+
+FRAME_ID = 'camera_color_optical_frame'
+DEFAULT_START_NS = 1_600_000_000_000_000_000
+TOPICS = {
+    'rgb': '/camera/rgb/image_raw', 'depth': '/camera/depth/image_raw', 'rgb_info': '/camera/rgb/camera_info',
+    'depth_info': '/camera/depth/camera_info', 'points': '/camera/depth/points',
+    'occupancy': '/ground_truth/occupancy', 'sdf': '/ground_truth/sdf', 'com': '/ground_truth/center_of_mass',
+    'outline': '/ground_truth/outline',
+}
+TYPES = {
+    'rgb': 'sensor_msgs/msg/Image', 'depth': 'sensor_msgs/msg/Image', 'rgb_info': 'sensor_msgs/msg/CameraInfo',
+    'depth_info': 'sensor_msgs/msg/CameraInfo', 'points': 'sensor_msgs/msg/PointCloud2',
+    'occupancy': 'nav_msgs/msg/OccupancyGrid', 'sdf': 'gpis_grasp_interfaces/msg/FloatGrid',
+    'com': 'geometry_msgs/msg/PointStamped', 'outline': 'geometry_msgs/msg/PolygonStamped',
+}
+
+
+@dataclass
+class Capture:
+    """One registered RGB-D frame: rgb (H, W, 3) uint8, depth (H, W) m (NaN = no return), intrinsics."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    intrinsics: CameraIntrinsics
+
+
+@dataclass
+class GroundTruth:
+    """Target shape in the table frame: SDF (m, positive outside) and occupancy on ``geometry``."""
+
+    sdf: np.ndarray
+    occupancy: np.ndarray  # int8 0 / 100
+    geometry: GridGeometry
+    center_of_mass: np.ndarray  # (3,) camera frame, on the table plane (m)
+    outline: np.ndarray  # (K, 3) camera frame, on the table plane (m)
+    table: TableFrame
+
+
+# ------------------------------------------------------------------------------------------ reading
+def _check_file(path: str | os.PathLike[str], what: str) -> Path:
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f'{what} file {p} does not exist')
+    return p
+
+
+def load_rgb(path: str | os.PathLike[str]) -> np.ndarray:
+    """8-bit colour image → (H, W, 3) uint8 RGB."""
+    p = _check_file(path, 'colour image')
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f'{p}: not an image OpenCV can read')
+    if img.dtype != np.uint8:
+        raise ValueError(f'{p}: colour image must be 8-bit, got {img.dtype}')
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    elif img.shape[2] == 4:
+        img = img[..., :3]
+    return np.ascontiguousarray(img[..., ::-1])
+
+
+def depth_to_metres(raw: np.ndarray, depth_scale: float = 0.001, what: str = 'depth') -> np.ndarray:
+    """Integer depth (``depth_scale`` m per unit, 0 = no return) or float metres → float64 m, NaN = no return."""
+    raw = np.asarray(raw)
+    if raw.ndim == 3 and raw.shape[2] == 1:
+        raw = raw[..., 0]
+    if raw.ndim != 2:
+        raise ValueError(f'{what}: expected a single-channel (H, W) depth image, got shape {raw.shape}')
+    if np.issubdtype(raw.dtype, np.integer):
+        if not (math.isfinite(depth_scale) and depth_scale > 0):
+            raise ValueError(f'depth_scale must be positive metres per unit, got {depth_scale}')
+        depth = raw.astype(np.float64) * depth_scale
+    elif np.issubdtype(raw.dtype, np.floating):
+        depth = raw.astype(np.float64)
+    else:
+        raise ValueError(f'{what}: unsupported depth dtype {raw.dtype}')
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)
+    if not np.isfinite(depth).any():
+        raise ValueError(f'{what}: no valid depth (all zero / NaN)')
+    if np.nanmedian(depth) > 50.0:
+        raise ValueError(f'{what}: median depth {np.nanmedian(depth):.0f} m is not plausible; float depth must be in '
+                         'metres (give depth_scale for integer millimetre images)')
+    return depth
+
+
+def load_depth(path: str | os.PathLike[str], depth_scale: float = 0.001) -> np.ndarray:
+    """16-bit PNG (mm), 32-bit float image (m) or ``.npy`` → (H, W) float64 m, NaN = no return."""
+    p = _check_file(path, 'depth')
+    if p.suffix.lower() == '.npy':
+        raw = np.load(p, allow_pickle=False)
+    else:
+        raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+        if raw is None:
+            raise ValueError(f'{p}: not an image OpenCV can read')
+        if raw.dtype == np.uint8:
+            raise ValueError(f'{p}: an 8-bit image is not a depth image (need 16-bit mm or 32-bit float m)')
+    return depth_to_metres(raw, depth_scale, str(p))
+
+
+def _intrinsics_from_mapping(data: Mapping[str, Any], width: int | None, height: int | None) -> CameraIntrinsics:
+    def get(*names: str) -> Any:
+        for n in names:
+            if n in data and data[n] is not None:
+                return data[n]
+        return None
+
+    k = get('K', 'k')
+    if k is None and isinstance(data.get('camera_matrix'), Mapping):
+        k = data['camera_matrix'].get('data')
+    if k is not None:
+        k = np.asarray(k, dtype=np.float64).ravel()
+        if k.size != 9:
+            raise ValueError(f'K must have 9 values (row-major 3 x 3), got {k.size}')
+        fx, fy, cx, cy = k[0], k[4], k[2], k[5]
+    else:
+        vals = [get(n) for n in ('fx', 'fy', 'cx', 'cy')]
+        if any(v is None for v in vals):
+            raise ValueError('intrinsics need fx, fy, cx, cy (or K / camera_matrix)')
+        fx, fy, cx, cy = (float(v) for v in vals)
+    w = get('width', 'xres', 'image_width')
+    h = get('height', 'yres', 'image_height')
+    w = int(w) if w is not None else width
+    h = int(h) if h is not None else height
+    if w is None or h is None:
+        raise ValueError('intrinsics need the image size (width, height) or an image to take it from')
+    return CameraIntrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
+
+
+def load_intrinsics(source: str | os.PathLike[str] | Mapping[str, Any], width: int | None = None,
+                    height: int | None = None) -> CameraIntrinsics:
+    """Intrinsics from a YAML file or a mapping (module docstring); ``width``/``height`` fill a missing size."""
+    if isinstance(source, Mapping):
+        return _intrinsics_from_mapping(source, width, height)
+    p = _check_file(source, 'intrinsics')
+    data = yaml.safe_load(p.read_text(encoding='utf8'))
+    if not isinstance(data, Mapping):
+        raise ValueError(f'{p}: expected a YAML mapping of intrinsics')
+    return _intrinsics_from_mapping(data, width, height)
+
+
+def load_capture(rgb_path: str | os.PathLike[str], depth_path: str | os.PathLike[str],
+                 intrinsics: str | os.PathLike[str] | Mapping[str, Any], depth_scale: float = 0.001) -> Capture:
+    """Read a registered colour + depth pair and its intrinsics; sizes must agree."""
+    rgb = load_rgb(rgb_path)
+    depth = load_depth(depth_path, depth_scale)
+    if rgb.shape[:2] != depth.shape:
+        raise ValueError(f'colour image {rgb.shape[1]} x {rgb.shape[0]} and depth {depth.shape[1]} x '
+                         f'{depth.shape[0]} differ in size (register the depth to the colour camera first)')
+    intr = load_intrinsics(intrinsics, width=depth.shape[1], height=depth.shape[0])
+    if (intr.width, intr.height) != (depth.shape[1], depth.shape[0]):
+        raise ValueError(f'intrinsics are for {intr.width} x {intr.height} but the images are '
+                         f'{depth.shape[1]} x {depth.shape[0]}')
+    return Capture(rgb, depth, intr)
+
+
+# ------------------------------------------------------------------------------------------ crop and scale
+def crop_and_scale(capture: Capture, crop: tuple[int, int, int, int] | None = None, scale: float = 1.0,
+                   extra: dict[str, np.ndarray] | None = None) -> tuple[Capture, dict[str, np.ndarray]]:
+    """Crop to ``(u0, v0, u1, v1)`` (exclusive end) then scale by ``scale`` (<= 1); intrinsics follow.
+
+    ``extra`` images (e.g. masks, ground-truth depth) get the same crop and nearest-sample scaling."""
+    intr = capture.intrinsics
+    extra = dict(extra or {})
+    rgb, depth = capture.rgb, capture.depth
+    fx, fy, cx, cy = intr.fx, intr.fy, intr.cx, intr.cy
+    if crop is not None:
+        u0, v0, u1, v1 = (int(c) for c in crop)
+        if not (0 <= u0 < u1 <= intr.width and 0 <= v0 < v1 <= intr.height):
+            raise ValueError(f'crop {crop} is not inside the {intr.width} x {intr.height} image')
+        rgb, depth = rgb[v0:v1, u0:u1], depth[v0:v1, u0:u1]
+        extra = {k: v[v0:v1, u0:u1] for k, v in extra.items()}
+        cx, cy = cx - u0, cy - v0
+    if not 0 < scale <= 1:
+        raise ValueError(f'scale must be in (0, 1], got {scale}')
+    if scale < 1:
+        h, w = depth.shape
+        nw, nh = max(1, int(round(w * scale))), max(1, int(round(h * scale)))
+        sx, sy = nw / w, nh / h
+        rgb = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_AREA)
+        depth = cv2.resize(depth, (nw, nh), interpolation=cv2.INTER_NEAREST)
+        extra = {k: cv2.resize(v, (nw, nh), interpolation=cv2.INTER_NEAREST) for k, v in extra.items()}
+        fx, fy, cx, cy = fx * sx, fy * sy, sx * (cx + 0.5) - 0.5, sy * (cy + 0.5) - 0.5
+    h, w = depth.shape
+    out = Capture(np.ascontiguousarray(rgb), np.ascontiguousarray(depth), CameraIntrinsics(fx, fy, cx, cy, w, h))
+    return out, extra
+
+
+def map_pixel(u: float, v: float, crop: tuple[int, int, int, int] | None, scale: float) -> tuple[float, float]:
+    """A pixel of the original image in the cropped and scaled image (same convention as the intrinsics)."""
+    if crop is not None:
+        u, v = u - crop[0], v - crop[1]
+    return scale * (u + 0.5) - 0.5, scale * (v + 0.5) - 0.5
+
+
+# ------------------------------------------------------------------------------------------ ground truth
+def capture_table(capture: Capture, sensor: SensorModel) -> TableFrame:
+    """The table plane fitted to the capture's depth exactly as segment_frames fits it (defaults)."""
+    points = capture.intrinsics.rays() * capture.depth[..., None]
+    valid = np.isfinite(capture.depth)
+    return fit_table_plane(points[valid], sensor)
+
+
+def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.ndarray, target_px: tuple[float, float],
+                           table: TableFrame, resolution: float = 0.001, margin: float = 0.03,
+                           frame_id: str = FRAME_ID) -> GroundTruth:
+    """Ground truth of the mask component containing ``target_px`` (module docstring).
+
+    Args:
+        capture: the capture (for the intrinsics).
+        mask: (H, W) bool or 0/255 mask of the objects (all of them).
+        true_depth: (H, W) m depth of the true shape (NaN where unknown: the pixel's ray meets the table).
+        target_px: (u, v) pixel on the target.
+        table: table plane (camera frame) whose frame the ground truth uses.
+        resolution, margin: ground-truth grid cell (m) and free margin around the shape (m).
+    """
+    m = np.asarray(mask) > 0 if np.asarray(mask).dtype != bool else np.asarray(mask)
+    _, labels = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
+    u, v = (int(round(c)) for c in target_px)
+    if not (0 <= v < labels.shape[0] and 0 <= u < labels.shape[1]) or labels[v, u] == 0:
+        raise ValueError(f'target pixel ({u}, {v}) is not on the mask')
+    comp = labels == labels[v, u]
+    rays = capture.intrinsics.rays()[comp]
+    z = np.asarray(true_depth, dtype=np.float64)[comp]
+    hit, ok = table.ray_intersection(rays)
+    pts = np.where(np.isfinite(z)[:, None], rays * np.nan_to_num(z)[:, None], hit)
+    keep = np.isfinite(pts).all(axis=1)
+    xy, height = table.to_table(pts[keep])
+    xy = xy[height > -0.005]  # points below the table are depth errors
+    if xy.shape[0] < 10:
+        raise ValueError('the target has fewer than 10 usable ground-truth points')
+    lo = np.floor((xy.min(axis=0) - margin) / resolution) * resolution
+    hi = np.ceil((xy.max(axis=0) + margin) / resolution) * resolution
+    w, h = (int(round(c)) for c in (hi - lo) / resolution)
+    geom = table.grid(float(lo[0]), float(lo[1]), resolution, w, h, frame_id)
+    occ = np.zeros((h, w), np.uint8)
+    idx = np.floor((xy - lo) / resolution).astype(np.int64)
+    occ[np.clip(idx[:, 1], 0, h - 1), np.clip(idx[:, 0], 0, w - 1)] = 1
+    # pixels are sparser than the 1 mm grid: close the footprint, then fill its holes
+    size = max(3, 2 * int(math.ceil(_pixel_footprint(capture, table) / resolution)) + 1)
+    occ = cv2.morphologyEx(occ, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    contours, _ = cv2.findContours(occ, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    biggest = max(contours, key=cv2.contourArea)
+    occ = np.zeros_like(occ)
+    cv2.drawContours(occ, [biggest], -1, 1, thickness=cv2.FILLED)
+    inside = occ.astype(bool)
+    sdf = signed_distance(inside, resolution)
+    centres = geom.cell_centers()
+    com_xy = centres[inside].mean(axis=0)
+    outline_xy = geom.to_metric(biggest.reshape(-1, 2).astype(np.float64))
+    return GroundTruth(sdf=sdf.astype(np.float32), occupancy=np.where(inside, 100, 0).astype(np.int8), geometry=geom,
+                       center_of_mass=geom.to_sensor(com_xy), outline=geom.to_sensor(outline_xy), table=table)
+
+
+def _pixel_footprint(capture: Capture, table: TableFrame) -> float:
+    z = float(np.nanmedian(capture.depth))
+    return z / min(capture.intrinsics.fx, capture.intrinsics.fy) / max(math.cos(math.radians(table.tilt_deg)), 0.3)
+
+
+# ------------------------------------------------------------------------------------------ writing
+def capture_messages(capture: Capture, f: Any, stamp_ns: int = DEFAULT_START_NS,
+                     truth: GroundTruth | None = None,
+                     frame_id: str = FRAME_ID) -> list[tuple[str, str, int, Any]]:
+    """``(topic, msgtype, t_ns, msg)`` of one frame: latched ground truth (if any) at ``stamp_ns``, then
+    the camera infos, RGB image, 32FC1 depth image (m, NaN = no return) and the organized XYZRGB cloud."""
+    out: list[tuple[str, str, int, Any]] = []
+    hdr = messages.header(f, stamp_ns, frame_id)
+    if truth is not None:
+        out.append((TOPICS['occupancy'], TYPES['occupancy'], stamp_ns,
+                    messages.numpy_to_occupancy_grid(f, truth.occupancy, truth.geometry, hdr)))
+        out.append((TOPICS['sdf'], TYPES['sdf'], stamp_ns,
+                    messages.numpy_to_float_grid(f, truth.sdf, truth.geometry, hdr, 'm')))
+        out.append((TOPICS['com'], TYPES['com'], stamp_ns, messages.point_stamped(f, truth.center_of_mass, hdr)))
+        pts = [f.new('geometry_msgs/msg/Point32', x=float(x), y=float(y), z=float(z))
+               for x, y, z in truth.outline.astype(np.float32)]
+        out.append((TOPICS['outline'], TYPES['outline'], stamp_ns,
+                    f.new('geometry_msgs/msg/PolygonStamped', header=hdr,
+                          polygon=f.new('geometry_msgs/msg/Polygon', points=pts))))
+    t = stamp_ns + 1
+    h = messages.header(f, t, frame_id)
+    i = capture.intrinsics
+    info = messages.intrinsics_to_camera_info(f, i.fx, i.fy, i.cx, i.cy, i.width, i.height, h)
+    depth32 = capture.depth.astype(np.float32)
+    xyz = (i.rays() * capture.depth[..., None]).astype(np.float32)
+    out += [(TOPICS['rgb_info'], TYPES['rgb_info'], t, info),
+            (TOPICS['rgb'], TYPES['rgb'], t, messages.numpy_to_image(f, capture.rgb, 'rgb8', h)),
+            (TOPICS['depth_info'], TYPES['depth_info'], t, info),
+            (TOPICS['depth'], TYPES['depth'], t, messages.numpy_to_image(f, depth32, '32FC1', h)),
+            (TOPICS['points'], TYPES['points'], t, messages.xyz_rgb_to_pointcloud2(f, xyz, capture.rgb, h))]
+    return out
+
+
+def write_capture_bag(capture: Capture, path: str | os.PathLike[str], truth: GroundTruth | None = None,
+                      metadata: Mapping[str, Any] | None = None, overwrite: bool = False,
+                      frame_id: str = FRAME_ID) -> Path:
+    """One-frame MCAP bag of ``capture`` (and its ground truth) with the simulated bags' topics and QoS."""
+    ts = bagio.get_typestore()
+    meta = {'gpis_grasp_ros.data.rgbd_import': json.dumps(dict(metadata or {}), sort_keys=True)}
+    msgs = capture_messages(capture, messages.RosbagsFactory(ts), truth=truth, frame_id=frame_id)
+    with bagio.BagWriter(path, typestore=ts, custom_data=meta, overwrite=overwrite) as bag:
+        for topic in dict.fromkeys(m[0] for m in msgs):
+            latched = topic.startswith('/ground_truth/')
+            bag.add_topic(topic, TYPES[next(k for k, v in TOPICS.items() if v == topic)],
+                          bagio.LATCHED_QOS if latched else bagio.SENSOR_QOS)
+        for topic, _type, t_ns, msg in msgs:
+            bag.write(topic, t_ns, msg)
+    return Path(path)
+
+
+__all__ = ['Capture', 'GroundTruth', 'capture_messages', 'capture_table', 'crop_and_scale', 'depth_to_metres',
+           'ground_truth_from_mask', 'load_capture', 'load_depth', 'load_intrinsics', 'load_rgb', 'map_pixel',
+           'write_capture_bag']
