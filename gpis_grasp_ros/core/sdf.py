@@ -61,3 +61,39 @@ def signed_distance(occupied: np.ndarray, resolution_m: float) -> np.ndarray:
     dist_inside = distance_transform_edt(padded)  # occupied cells: to the nearest free centre
     sdf = np.where(padded, -(dist_inside - 0.5), dist_outside - 0.5)[1:-1, 1:-1]
     return (sdf * float(resolution_m)).astype(np.float64)
+
+
+def sdf_gradient(sdf_m: np.ndarray, resolution_m: float,
+                 valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Central-difference gradient of a grid SDF (dimensionless), for the GPIS gradient observations.
+
+    d f / d x at cell (i, j) is (f[i, j+1] - f[i, j-1]) / (2 resolution), d f / d y uses the rows
+    (grid x runs along columns, y along rows, like :meth:`GridGeometry.cell_centers`). A
+    component is defined only where the cell and both neighbours along that axis lie inside the
+    grid and are ``valid`` (e.g. the training mask: a missing neighbour has no measured distance).
+
+    Args:
+        sdf_m: ``(H, W)`` signed distances (m).
+        resolution_m: cell edge length (m).
+        valid: ``(H, W)`` bool cells whose SDF value may be used (default: all).
+
+    Returns:
+        ``(gradient, defined)``: ``(H, W, 2)`` float64 (d f / d x, d f / d y), 0 where undefined,
+        and ``(H, W, 2)`` bool, True where the component is defined.
+    """
+    f = np.asarray(sdf_m, dtype=np.float64)
+    if f.ndim != 2:
+        raise ValueError(f'sdf must be a 2-D array, got shape {f.shape}')
+    if not (np.isfinite(resolution_m) and resolution_m > 0):
+        raise ValueError(f'resolution must be a positive number of metres, got {resolution_m}')
+    ok = np.ones(f.shape, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    if ok.shape != f.shape:
+        raise ValueError(f'valid mask {ok.shape} must match the sdf {f.shape}')
+    grad = np.zeros((*f.shape, 2))
+    defined = np.zeros((*f.shape, 2), dtype=bool)
+    defined[:, 1:-1, 0] = ok[:, 1:-1] & ok[:, :-2] & ok[:, 2:]
+    defined[1:-1, :, 1] = ok[1:-1, :] & ok[:-2, :] & ok[2:, :]
+    grad[:, 1:-1, 0] = (f[:, 2:] - f[:, :-2]) / (2.0 * resolution_m)
+    grad[1:-1, :, 1] = (f[2:, :] - f[:-2, :]) / (2.0 * resolution_m)
+    grad[~defined] = 0.0
+    return grad, defined

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from gpis_grasp_ros.core import gpis as gp
 from gpis_grasp_ros.core.gpis import (
     GpisParams,
     GpisPosterior,
@@ -15,10 +16,13 @@ from gpis_grasp_ros.core.gpis import (
     build_gpis,
     com_spread,
     fit_gpis,
+    gradient_observations,
     posterior_from_data,
 )
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sdf import signed_distance
+
+VALUE_ONLY = dict(gradient_observations=False)
 
 NOISE = (0.5e-3) ** 2  # (0.5 mm)^2, a 10-frame Carmine average at 0.7 m
 
@@ -45,6 +49,52 @@ def _reference_posterior(g: GridGeometry, kp: KernelParams, xy: np.ndarray, y: n
     return mean.reshape(g.shape), cov
 
 
+def _joint_kernel(kp: KernelParams, a: np.ndarray, ta: np.ndarray, b: np.ndarray, tb: np.ndarray) -> np.ndarray:
+    """Textbook joint covariance of values (type 0) and gradient components (1: d/dx, 2: d/dy).
+
+    With k = C exp(-|x - x'|^2 / (2 l^2)) and r = x - x':  cov(f, f) = k,
+    cov(f(x), d f(x') / d x'_j) = k r_j / l^2,  cov(d f(x) / d x_i, f(x')) = -k r_i / l^2,
+    cov(d f(x) / d x_i, d f(x') / d x'_j) = k (delta_ij / l^2 - r_i r_j / l^4)  (Solak et al. 2003).
+    """
+    ell2 = kp.length_scale ** 2
+    r = a[:, None, :] - b[None, :, :]
+    k = kp.signal_variance * np.exp(-0.5 * (r ** 2).sum(-1) / ell2)
+    out = np.zeros_like(k)
+    for i in (0, 1, 2):
+        for j in (0, 1, 2):
+            blk = np.ix_(ta == i, tb == j)
+            kb, rb = k[blk], r[blk]
+            if i == 0 and j == 0:
+                out[blk] = kb
+            elif i == 0:
+                out[blk] = kb * rb[..., j - 1] / ell2
+            elif j == 0:
+                out[blk] = -kb * rb[..., i - 1] / ell2
+            else:
+                out[blk] = kb * (float(i == j) / ell2 - rb[..., i - 1] * rb[..., j - 1] / ell2 ** 2)
+    return out
+
+
+def _joint_reference(g: GridGeometry, kp: KernelParams, xy, kind, y, noise):
+    """Dense GPR with value and gradient observations → grid mean, covariance, mean gradient."""
+    test = g.cell_centers().reshape(-1, 2)
+    t0 = np.zeros(len(test), int)
+    a = _joint_kernel(kp, xy, kind, xy, kind) + np.diag(noise)
+    resid = y - np.where(kind == 0, kp.prior_mean, 0.0)
+    ks = _joint_kernel(kp, test, t0, xy, kind)
+    mean = kp.prior_mean + ks @ np.linalg.solve(a, resid)
+    cov = _joint_kernel(kp, test, t0, test, t0) - ks @ np.linalg.solve(a, ks.T)
+    grad = np.stack([_joint_kernel(kp, test, np.full(len(test), t), xy, kind) @ np.linalg.solve(a, resid)
+                     for t in (1, 2)], axis=-1)
+    return mean.reshape(g.shape), cov, grad.reshape(*g.shape, 2)
+
+
+def _all_observations(post: GpisPosterior):
+    kind = np.concatenate([np.zeros(len(post.train_y), int), 1 + np.asarray(post.train_grad_axis)])
+    return (np.vstack([post.train_xy, post.train_grad_xy]), kind, np.concatenate([post.train_y, post.train_grad]),
+            np.concatenate([post.train_noise, post.train_grad_noise]))
+
+
 @pytest.fixture(scope='module')
 def disc_full():
     g, true, sdf = _disc_grid()
@@ -69,7 +119,14 @@ def test_contract_fields(disc_full):
     assert post.gradient.shape == (*g.shape, 2)
     assert post.cov_factor.shape[0] == n and 1 <= post.cov_factor.shape[1] <= n
     assert post.train_xy.shape == (n, 2) and post.train_y.shape == (n,) and post.train_noise.shape == (n,)
+    # gradient observations: both components at every cell whose two neighbours are in the grid
+    k = post.train_grad.size
+    assert k == 2 * g.height * (g.width - 2) and post.train_grad_xy.shape == (k, 2)
+    assert post.train_grad_axis.shape == (k,) and post.train_grad_noise.shape == (k,)
+    assert np.all(post.train_grad_noise >= 0.01) and post.alpha.shape == (n + k,)
     assert post.hyperparameters_optimized and post.approximation == 'exact'
+    assert post.hyperparameter_fit is not None and post.hyperparameter_fit.ok
+    assert post.bound_hits == post.hyperparameter_fit.bound_hits
     assert post.params.prior_mean < 0
     assert np.isfinite(post.log_marginal_likelihood)
     for arr in (post.mean, post.variance, post.gradient, post.cov_factor):
@@ -114,14 +171,98 @@ def test_matches_textbook_gpr_with_missing_cells():
     noise[9:12, 2:5] = 4e-5  # a noisier patch
     kp = KernelParams(6e-4, 0.02, -0.01)
     params = GpisParams(optimize_hyperparameters=False, signal_variance=kp.signal_variance,
-                        length_scale=kp.length_scale, prior_mean=kp.prior_mean, jitter=0.0)
+                        length_scale=kp.length_scale, prior_mean=kp.prior_mean, jitter=0.0, **VALUE_ONLY)
     post = fit_gpis(sdf, noise, mask, g, params)
+    assert post.train_grad.size == 0
     mean, cov = _reference_posterior(g, kp, g.cell_centers()[mask], sdf[mask], noise[mask])
     assert np.max(np.abs(post.mean - mean)) < 1e-9
     assert np.max(np.abs(post.variance - np.diag(cov).reshape(g.shape))) < 1e-12
     # joint covariance factor: Sigma ~= L L^T up to the basis truncation (1e-10 of C)
     lcov = post.cov_factor @ post.cov_factor.T
     assert np.max(np.abs(lcov - cov)) < 1e-9 * kp.signal_variance
+
+
+@pytest.mark.parametrize('max_exact', [2500, 0])
+def test_gradient_observations_match_dense_joint_kernel(max_exact):
+    """Values + gradient observations (Solak et al.) against a dense textbook joint GP, exact and large-grid path."""
+    g, _, sdf = _disc_grid(m=14)
+    mask = np.ones(g.shape, bool)
+    mask[2:6, 8:13] = False
+    noise = np.full(g.shape, NOISE)
+    noise[9:12, 2:5] = 4e-5  # a noisier patch: its gradients get the propagated noise
+    kp = KernelParams(6e-4, 0.02, -0.01)
+    params = GpisParams(optimize_hyperparameters=False, signal_variance=kp.signal_variance,
+                        length_scale=kp.length_scale, prior_mean=kp.prior_mean, jitter=0.0,
+                        max_exact_points=max_exact, rank_tolerance=1e-14)
+    post = fit_gpis(sdf, noise, mask, g, params)
+    assert post.approximation == ('exact' if max_exact else 'reduced_rank')
+    mean, cov, grad = _joint_reference(g, kp, *_all_observations(post))
+    assert np.max(np.abs(post.mean - mean)) <= 1e-8
+    assert np.max(np.abs(post.variance - np.diag(cov).reshape(g.shape))) <= 1e-8 * kp.signal_variance
+    assert np.max(np.abs(post.gradient - grad)) <= 1e-8
+    assert np.max(np.abs(post.cov_factor @ post.cov_factor.T - cov)) <= 1e-8 * kp.signal_variance
+    # off-grid evaluation agrees with the grid fields
+    centres = g.cell_centers()
+    assert np.max(np.abs(post.predict_mean(centres) - mean)) <= 1e-8
+    assert np.max(np.abs(post.predict_gradient(centres) - grad)) <= 1e-8
+
+
+def test_gradient_observations_property_random_hyperparameters():
+    """Over random grids, masks, noise and hyperparameters the joint posterior equals the dense reference."""
+    rng = np.random.default_rng(11)
+    for case in range(12):
+        m = int(rng.integers(6, 11))
+        res = float(rng.uniform(0.003, 0.01))
+        g = GridGeometry(*rng.uniform(-0.05, 0.0, 2), res, m, int(rng.integers(6, 11)))
+        centres = g.cell_centers()
+        true = np.hypot(*(centres - centres.reshape(-1, 2).mean(0) - rng.uniform(-res, res, 2)).transpose(2, 0, 1))
+        sdf = signed_distance(true < rng.uniform(0.2, 0.4) * m * res, g.resolution)
+        mask = rng.random(g.shape) > 0.25
+        noise = np.exp(rng.uniform(np.log(1e-7), np.log(1e-4), g.shape))
+        kp = KernelParams(float(np.exp(rng.uniform(np.log(1e-5), np.log(1e-3)))),
+                          float(rng.uniform(0.8, 4.0)) * res, float(rng.uniform(-0.02, 0.0)))
+        params = GpisParams(optimize_hyperparameters=False, signal_variance=kp.signal_variance,
+                            length_scale=kp.length_scale, prior_mean=kp.prior_mean, jitter=0.0,
+                            gradient_noise_variance=float(rng.uniform(1e-3, 0.1)))
+        post = fit_gpis(sdf, noise, mask, g, params)
+        assert post.train_grad.size > 0, case
+        mean, cov, grad = _joint_reference(g, kp, *_all_observations(post))
+        assert np.max(np.abs(post.mean - mean)) <= 1e-8, case
+        assert np.max(np.abs(post.variance - np.diag(cov).reshape(g.shape))) <= 1e-8 * kp.signal_variance, case
+        assert np.max(np.abs(post.gradient - grad)) <= 1e-8 * max(1.0, np.abs(grad).max()), case
+        assert np.max(np.abs(post.cov_factor @ post.cov_factor.T - cov)) <= 1e-8 * kp.signal_variance, case
+
+
+def test_gradient_observation_noise_model():
+    g, true, sdf = _disc_grid(m=25)
+    noise = np.full(g.shape, NOISE)
+    noise[10, :] = 1e-4  # one noisy row: its neighbours' y-differences carry the propagated noise
+    mask = np.ones(g.shape, bool)
+    mask[3, 3] = False
+    xy, axis, value, var = gradient_observations(sdf, noise, mask, g, 0.01)
+    res = g.resolution
+    cols = np.rint((xy[:, 0] - g.origin_x) / res - 0.5).astype(int)
+    rows = np.rint((xy[:, 1] - g.origin_y) / res - 0.5).astype(int)
+    # central differences of the SDF, only where the cell and both neighbours are training cells
+    fx = (sdf[rows, np.minimum(cols + 1, 24)] - sdf[rows, np.maximum(cols - 1, 0)]) / (2 * res)
+    fy = (sdf[np.minimum(rows + 1, 24), cols] - sdf[np.maximum(rows - 1, 0), cols]) / (2 * res)
+    np.testing.assert_allclose(value, np.where(axis == 0, fx, fy), atol=1e-12)
+    assert not np.any((rows == 3) & (np.abs(cols - 3) <= 1) & (axis == 0))
+    assert not np.any((cols == 3) & (np.abs(rows - 3) <= 1) & (axis == 1))
+    assert np.all(np.where(axis == 0, (cols > 0) & (cols < 24), (rows > 0) & (rows < 24)))
+    # noise: g0 + kink term + propagated value noise
+    above = (axis == 1) & ((rows == 9) | (rows == 11)) & (np.abs(xy[:, 0]) > 0.045)
+    assert above.sum() > 4
+    np.testing.assert_allclose(var[above], 0.01 + (1e-4 + NOISE) / (4 * res ** 2), rtol=0.05)
+    # away from the disc centre (the medial point) the EDT gradient approximates the true one
+    r = np.hypot(xy[:, 0], xy[:, 1])
+    true_grad = np.where(axis == 0, xy[:, 0], xy[:, 1]) / np.maximum(r, 1e-12)
+    far = (r > 0.015) & (var < 0.02)
+    assert far.sum() > 500
+    assert np.sqrt(np.mean((value[far] - true_grad[far]) ** 2)) < 0.15
+    # the medial point has |g| far from 1: its components get a large noise
+    centre = r < 0.6 * res
+    assert np.all(var[centre] > 0.2)
 
 
 def test_joint_samples_match_posterior_covariance():
@@ -131,7 +272,8 @@ def test_joint_samples_match_posterior_covariance():
     kp = KernelParams(5e-4, 0.018, -0.01)
     post = fit_gpis(sdf, np.full(g.shape, NOISE), mask, g, GpisParams(
         optimize_hyperparameters=False, signal_variance=kp.signal_variance, length_scale=kp.length_scale, jitter=0.0))
-    mean, cov = _reference_posterior(g, kp, g.cell_centers()[mask], sdf[mask], np.full(mask.sum(), NOISE))
+    assert post.train_grad.size > 0  # joint value / gradient posterior
+    mean, cov, _ = _joint_reference(g, kp, *_all_observations(post))
     n = 5000
     samples = post.sample(n, np.random.default_rng(0)).reshape(n, -1)
     # Entry (i, j) of a sample covariance of n Gaussian draws has standard deviation
@@ -168,7 +310,37 @@ def test_mean_gradient_matches_finite_differences():
     assert np.all(np.abs(np.linalg.norm(post.gradient[near], axis=-1) - 1.0) < 0.35)
 
 
-def test_hyperparameters_recovered_from_a_known_gp():
+def _joint_draw(g: GridGeometry, c: float, ell: float, prior: float, noise: float, grad_noise: float,
+                rng: np.random.Generator):
+    """Values and both gradient components at every cell, drawn jointly from the SE prior, plus noise."""
+    xy = g.cell_centers().reshape(-1, 2)
+    n = len(xy)
+    pts = np.vstack([xy, xy, xy])
+    kind = np.repeat([0, 1, 2], n)
+    k = _joint_kernel(KernelParams(c, ell, prior), pts, kind, pts, kind)
+    with gp.blas_threads(1):  # one BLAS thread: predictable on a loaded machine
+        lam, u = np.linalg.eigh(k)
+    f = u @ (np.sqrt(np.clip(lam, 0, None)) * rng.standard_normal(3 * n))
+    noise_all = np.where(kind == 0, noise, grad_noise)
+    y = f + np.where(kind == 0, prior, 0.0) + np.sqrt(noise_all) * rng.standard_normal(3 * n)
+    return gp._Observations.build(xy, y[:n], np.full(n, noise), pts[n:], kind[n:] - 1, y[n:], noise_all[n:])
+
+
+@pytest.mark.parametrize('ell_cells', [1.5, 2.5, 4.0])
+def test_maximum_likelihood_recovers_a_known_length_scale(ell_cells):
+    """ML on a joint value/gradient draw of a known GP recovers l within 20 % (fixed seed)."""
+    m = 16
+    g = GridGeometry(0.0, 0.0, 0.12 / m, m, m)
+    c_true, l_true, prior = 4e-4, ell_cells * g.resolution, -0.01
+    obs = _joint_draw(g, c_true, l_true, prior, 1e-7, 1e-3, np.random.default_rng(int(ell_cells * 10)))
+    params = GpisParams(prior_mean=prior, length_scale_max_extent=1.0)
+    fit = gp.fit_hyperparameters(g, obs, params)
+    assert fit.ok and fit.bound_hits == () and fit.cholesky_failures == 0
+    assert fit.length_scale == pytest.approx(l_true, rel=0.2)
+    assert fit.signal_variance == pytest.approx(c_true, rel=0.5)
+
+
+def test_hyperparameters_recovered_from_a_known_gp_values_only():
     m = 24
     g = GridGeometry(0.0, 0.0, 0.15 / m, m, m)
     c_true, l_true, prior, noise = 4e-4, 0.015, -0.01, 1e-7
@@ -177,20 +349,85 @@ def test_hyperparameters_recovered_from_a_known_gp():
     k = c_true * np.exp(-0.5 * d2 / l_true ** 2) + 1e-12 * np.eye(m * m)
     rng = np.random.default_rng(0)
     f = prior + np.linalg.cholesky(k) @ rng.standard_normal(m * m) + math.sqrt(noise) * rng.standard_normal(m * m)
-    # generous bounds: this checks the maximum-likelihood machinery, not the default cap l <= E/12
+    # the value-only GP, no search band (a GP draw is not an SDF): this checks the ML machinery
     post = fit_gpis(f.reshape(m, m), np.full((m, m), noise), np.ones((m, m), bool), g,
-                    GpisParams(prior_mean=prior, length_scale_bounds=(1 / 50, 1.0)))
+                    GpisParams(prior_mean=prior, search_band_cells=None, max_opt_points=600, **VALUE_ONLY))
     assert post.params.signal_variance == pytest.approx(c_true, rel=0.3)
-    assert post.params.length_scale == pytest.approx(l_true, rel=0.3)
+    assert post.params.length_scale == pytest.approx(l_true, rel=0.2)
+    assert post.bound_hits == ()
     # the fixed-hyperparameter path keeps the given values
     fixed = fit_gpis(f.reshape(m, m), np.full((m, m), noise), np.ones((m, m), bool), g,
                      GpisParams(prior_mean=prior, optimize_hyperparameters=False, signal_variance=1e-3,
-                                length_scale=0.02))
+                                length_scale=0.02, **VALUE_ONLY))
     assert (fixed.params.signal_variance, fixed.params.length_scale) == (1e-3, 0.02)
-    assert not fixed.hyperparameters_optimized
+    assert not fixed.hyperparameters_optimized and fixed.hyperparameter_fit is None and fixed.bound_hits == ()
     assert post.log_marginal_likelihood > fixed.log_marginal_likelihood
-    capped = fit_gpis(f.reshape(m, m), np.full((m, m), noise), np.ones((m, m), bool), g, GpisParams(prior_mean=prior))
-    assert capped.params.length_scale == pytest.approx(0.15 / 12, rel=1e-6)  # default cap E/12 < 15 mm binds
+
+
+def test_binding_bound_is_logged_and_exposed(caplog):
+    m = 12
+    g = GridGeometry(0.0, 0.0, 0.12 / m, m, m)
+    obs = _joint_draw(g, 4e-4, 4.0 * g.resolution, -0.01, 1e-7, 1e-3, np.random.default_rng(3))
+    tight = GpisParams(prior_mean=-0.01, length_scale_max_extent=2.0 / m)  # l <= 2 cells < 4 cells
+    with caplog.at_level('WARNING', logger='gpis_grasp_ros.core.gpis'):
+        fit = gp.fit_hyperparameters(g, obs, tight)
+    assert fit.bound_hits == ('length_scale_upper',)
+    assert fit.length_scale == pytest.approx(2.0 * g.resolution, rel=1e-6)
+    assert any('length_scale_upper' in r.getMessage() for r in caplog.records)
+    # and on the posterior built by fit_gpis
+    sdf = signed_distance(np.hypot(*(g.cell_centers() - 0.06).transpose(2, 0, 1)) < 0.03, g.resolution)
+    post = fit_gpis(sdf, np.full(g.shape, NOISE), np.ones(g.shape, bool), g,
+                    GpisParams(length_scale_max_extent=1.2 / m))  # l <= 1.2 cells
+    assert 'length_scale_upper' in post.bound_hits
+    lo, hi = gp.hyperparameter_bounds(g, GpisParams())
+    assert hi[0] == pytest.approx(g.resolution) and hi[1] == pytest.approx(0.12 / 6)
+
+
+def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypatch):
+    m = 12
+    g = GridGeometry(0.0, 0.0, 0.01, m, m)
+    obs = _joint_draw(g, 4e-4, 0.02, -0.01, 1e-7, 1e-3, np.random.default_rng(4))
+    real = gp.negative_log_marginal_likelihood
+
+    def failing_beyond(log_theta, *args):  # K + N "not positive definite" for l > 3 cm
+        if math.exp(log_theta[1]) > 0.03:
+            raise np.linalg.LinAlgError('not positive definite')
+        return real(log_theta, *args)
+
+    monkeypatch.setattr(gp, 'negative_log_marginal_likelihood', failing_beyond)
+    params = GpisParams(prior_mean=-0.01, length_scale_max_extent=1.0, n_restarts=4, seed=1)
+    with caplog.at_level('WARNING', logger='gpis_grasp_ros.core.gpis'):
+        fit = gp.fit_hyperparameters(g, obs, params)
+    assert fit.ok and fit.cholesky_failures > 0 and fit.length_scale <= 0.03
+    assert fit.failed_starts >= 1  # seed 1 draws random starts beyond 3 cm: they are reported, not used
+    assert any('not positive definite' in r.getMessage() for r in caplog.records)
+    # every evaluation fails: the start values are kept, flagged and logged as an error
+    caplog.clear()
+    monkeypatch.setattr(gp, 'negative_log_marginal_likelihood',
+                        lambda *a: (_ for _ in ()).throw(np.linalg.LinAlgError('not positive definite')))
+    with caplog.at_level('WARNING', logger='gpis_grasp_ros.core.gpis'):
+        fit = gp.fit_hyperparameters(g, obs, params)
+    assert not fit.ok and fit.failed_starts == fit.n_starts == 5 and math.isnan(fit.log_likelihood)
+    assert fit.bound_hits == ()
+    assert any(r.levelname == 'ERROR' and 'every start' in r.getMessage() for r in caplog.records)
+
+
+def test_negative_log_likelihood_raises_on_singular_matrix_and_has_the_right_gradient():
+    g = GridGeometry(0.0, 0.0, 0.01, 8, 8)
+    obs = _joint_draw(g, 4e-4, 0.02, -0.01, 1e-7, 1e-3, np.random.default_rng(5))
+    kern = gp._DenseKernel(obs)
+    resid = obs.y - np.where(obs.kind == 0, -0.01, 0.0)
+    theta = np.log([3e-4, 0.017])
+    h = 1e-6
+    with gp.blas_threads(1):
+        f, grad = gp.negative_log_marginal_likelihood(theta, kern, resid, obs.noise)
+        fd = [(gp.negative_log_marginal_likelihood(theta + h * e, kern, resid, obs.noise)[0]
+               - gp.negative_log_marginal_likelihood(theta - h * e, kern, resid, obs.noise)[0]) / (2 * h)
+              for e in np.eye(2)]
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-4)
+    same = gp._Observations.build(np.zeros((2, 2)), np.zeros(2), np.zeros(2))  # two identical noise-free points
+    with pytest.raises(np.linalg.LinAlgError):
+        gp.negative_log_marginal_likelihood(theta, gp._DenseKernel(same), np.ones(2), np.zeros(2))
 
 
 @pytest.mark.parametrize('max_exact', [2500, 0])
@@ -201,7 +438,10 @@ def test_posterior_from_data_reproduces_fit(max_exact):
     noise = np.full(g.shape, NOISE)
     params = GpisParams(optimize_hyperparameters=False, max_exact_points=max_exact)
     post = fit_gpis(sdf, noise, mask, g, params)
+    assert post.train_grad.size > 0
     again = posterior_from_data(g, post.params, post.train_xy, post.train_y, post.train_noise, post.jitter,
+                                train_grad_xy=post.train_grad_xy, train_grad_axis=post.train_grad_axis,
+                                train_grad=post.train_grad, train_grad_noise=post.train_grad_noise,
                                 max_exact_points=max_exact)
     assert again.approximation == post.approximation == ('exact' if max_exact else 'reduced_rank')
     for name in ('mean', 'variance', 'gradient', 'cov_factor'):

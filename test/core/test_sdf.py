@@ -79,3 +79,25 @@ def test_outside_the_grid_is_free_space():
 def test_invalid_input_raises(bad, res, match):
     with pytest.raises(ValueError, match=match):
         signed_distance(bad, res)
+
+
+def test_sdf_gradient_central_differences_and_validity():
+    from gpis_grasp_ros.core.sdf import sdf_gradient
+
+    g = _grid(12, 0.06)
+    c = g.cell_centers()
+    plane = 0.6 * c[..., 0] - 0.8 * c[..., 1] + 0.01  # a linear field: central differences are exact
+    valid = np.ones(g.shape, bool)
+    valid[4, 7] = False
+    grad, defined = sdf_gradient(plane, g.resolution, valid)
+    assert grad.shape == (12, 12, 2) and defined.shape == (12, 12, 2)
+    np.testing.assert_allclose(grad[defined[..., 0], 0], 0.6, atol=1e-12)
+    np.testing.assert_allclose(grad[defined[..., 1], 1], -0.8, atol=1e-12)
+    # x needs both column neighbours, y both row neighbours, inside the grid and valid
+    assert not defined[:, 0, 0].any() and not defined[:, -1, 0].any()
+    assert not defined[0, :, 1].any() and not defined[-1, :, 1].any()
+    assert not defined[4, 6, 0] and not defined[4, 8, 0] and not defined[4, 7, 0] and defined[4, 5, 0]
+    assert not defined[3, 7, 1] and not defined[5, 7, 1] and not defined[4, 7, 1] and defined[6, 7, 1]
+    assert np.all(grad[~defined] == 0.0)
+    with pytest.raises(ValueError, match='valid mask'):
+        sdf_gradient(plane, g.resolution, valid[:-1])
