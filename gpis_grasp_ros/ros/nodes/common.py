@@ -179,6 +179,13 @@ class GuardedNode(Node):
         self._in_flight_cv = threading.Condition()
         #: Threads the node needs in its executor (blocking service callbacks need their own).
         self.executor_threads = 4
+        #: Messages rejected by validation since start-up (each logged as a warning).
+        self.rejected = 0
+
+    def reject(self, text: str) -> None:
+        """Log a rejected message (warning naming the field) and count it."""
+        self.rejected += 1
+        self.get_logger().warning(text)
 
     def begin_shutdown(self) -> None:
         """Stop taking new work; in-flight requests are answered 'shutting down'."""

@@ -132,7 +132,7 @@ class GpisNode(GuardedNode):
         try:
             validation.check_occupancy_grid(msg, self.config.limits)
         except ValueError as exc:
-            self.get_logger().warning(f'ignoring object/occupancy: {exc}')
+            self.reject(f'ignoring object/occupancy: {exc}')
             return
         with self._lock:
             self._occupancy = msg
@@ -143,7 +143,7 @@ class GpisNode(GuardedNode):
             validation.check_float_grid(msg, self.config.limits, 'FloatGrid object/noise_map', allow_nan=True,
                                         low=0.0, high=MAX_NOISE_VARIANCE)
         except ValueError as exc:
-            self.get_logger().warning(f'ignoring object/noise_map: {exc}')
+            self.reject(f'ignoring object/noise_map: {exc}')
             return
         with self._lock:
             self._noise = msg

@@ -88,7 +88,7 @@ class GripperSimNode(GuardedNode):
             if not (values < 0).any():
                 raise ValueError('FloatGrid ground_truth/sdf.data has no cell inside the object (no value < 0)')
         except ValueError as exc:
-            self.get_logger().warning(f'ignoring ground_truth/sdf: {exc}')
+            self.reject(f'ignoring ground_truth/sdf: {exc}')
             return
         with self._lock:
             self._sdf, self._geometry = values.astype(np.float64), geometry
@@ -98,7 +98,7 @@ class GripperSimNode(GuardedNode):
         try:
             xyz = validation.check_point(msg, 'PointStamped ground_truth/center_of_mass.point', self.limits)
         except ValueError as exc:
-            self.get_logger().warning(f'ignoring ground_truth/center_of_mass: {exc}')
+            self.reject(f'ignoring ground_truth/center_of_mass: {exc}')
             return
         with self._lock:
             self._com = xyz[:2]

@@ -87,6 +87,9 @@ class PlannerConfig:
     image_scale: int
     max_queue: int
     limits: validation.Limits
+    grasp_height: float = -1.0  # m above the table; negative = automatic (conversions.grasp_height_for)
+    object_height: float = 0.0  # m, for the automatic grasp height; 0 = unknown
+    jaw_height: float = conversions.DEFAULT_JAW_HEIGHT  # m, jaw pad height along the approach
 
 
 def build_config(v: dict[str, Any]) -> PlannerConfig:
@@ -106,7 +109,8 @@ def build_config(v: dict[str, Any]) -> PlannerConfig:
                          uncertainty_penalty=float(v['uncertainty_penalty']), gripper=gripper,
                          antipodal_alpha=float(v['antipodal_alpha']), gp_p_adaptive=bool(v['gp_p_adaptive']),
                          planning_timeout=float(v['planning_timeout']), image_scale=int(v['image_scale']),
-                         max_queue=int(v['max_queue']), limits=limits)
+                         max_queue=int(v['max_queue']), limits=limits, grasp_height=float(v['grasp_height']),
+                         object_height=float(v['object_height']), jaw_height=float(v['jaw_height']))
 
 
 @dataclass(eq=False)
@@ -159,6 +163,13 @@ class PlannerNode(GuardedNode):
         declare(self, 'planning_timeout', 60.0, 'seconds of planning after which a request is stopped and answered '
                 'success=false (queueing time not included)', low=0.1, high=3600.0)
         declare(self, 'image_scale', 16, 'pixels per grid cell of grasp/image', low=1, high=64)
+        declare(self, 'grasp_height', -1.0, 'height (m) above the table, along its normal, of the jaw poses and '
+                'contacts; negative = automatic: half of object_height, at least half of jaw_height',
+                low=-1.0, high=0.5)
+        declare(self, 'object_height', 0.0, 'height (m) of the object above the table for the automatic grasp_height '
+                '(0 = unknown: the jaws close half a jaw height above the table)', low=0.0, high=1.0)
+        declare(self, 'jaw_height', conversions.DEFAULT_JAW_HEIGHT, 'height (m) of a jaw pad along the approach '
+                'direction (grasp_height clamp, markers)', low=0.001, high=0.2)
         declare(self, 'max_queue', 32, 'requests (service calls + action goals) that may wait for a worker; '
                 "more are answered 'queue full' at once", low=0, high=MAX_QUEUE_LIMIT)
         self.workers = declare(self, 'workers', 1, 'planning threads working on requests in parallel',
@@ -211,7 +222,7 @@ class PlannerNode(GuardedNode):
             posterior = messages.gpis_model_to_posterior(msg)
             validation.check_posterior(posterior)
         except (ValueError, np.linalg.LinAlgError) as exc:
-            self.get_logger().warning(f'ignoring GpisModel on {self.resolve_topic_name(self._model_topic)}: {exc}; '
+            self.reject(f'ignoring GpisModel on {self.resolve_topic_name(self._model_topic)}: {exc}; '
                                       'keeping the previous model')
             return
         blur = gpis_blur(posterior, n_samples=200, rng=np.random.default_rng(0))
@@ -357,8 +368,11 @@ class PlannerNode(GuardedNode):
             self.get_logger().error(response.message)
         elif job.result is not None:
             result = job.result
-            conversions.fill_grasp_plan_response(response, result, job.model.header,
-                                                 z=job.posterior.geometry.z)
+            c = job.config
+            conversions.fill_grasp_plan_response(
+                response, result, job.model.header, geometry=job.posterior.geometry,
+                grasp_height=conversions.grasp_height_for(c.grasp_height, c.object_height, c.jaw_height),
+                contacts_xy=conversions.mean_shape_contacts(job.posterior, result, c.gripper.jaw_width))
             finite = np.isfinite(np.concatenate([np.ravel(result.jaw1), np.ravel(result.jaw2)])).all()
             if response.success and not finite:
                 response.success = False
@@ -459,8 +473,10 @@ class PlannerNode(GuardedNode):
         touches = np.stack([np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]])
         if not bool(np.ravel(con.valid)[0]):
             touches = None
-        self.marker_pub.publish(conversions.grasp_markers(result, header, posterior.geometry, jaw_width,
-                                                          contacts_xy=touches))
+        c = job.config
+        self.marker_pub.publish(conversions.grasp_markers(
+            result, header, posterior.geometry, jaw_width, jaw_height=c.jaw_height, contacts_xy=touches,
+            grasp_height=conversions.grasp_height_for(c.grasp_height, c.object_height, c.jaw_height)))
         overlay = viz.grasp_overlay(job.blur, posterior.geometry, [result], scale=job.config.image_scale,
                                     jaw_width_m=jaw_width)
         factory = conversions.RclpyFactory()
