@@ -1,7 +1,15 @@
 """Bag replay with rclpy publishers: a launch-free stand-in for ``ros2 bag play``.
 
-``gpis-grasp play BAG [--rate R] [--loop] [--topics T ...] [--remap FROM:=TO ...] [--reliable]``
+``gpis-grasp play BAG [--rate R] [--loop] [--topics T ...] [--remap FROM:=TO ...] [--reliable] [--clock]``
 (also installed as the ``bag_player`` console script).
+
+* **No lost frames to discovery.** Before the first message the player waits (up to
+  ``wait_for_subscribers``, default 5 s) until every topic that has subscribers in the ROS graph is
+  matched by its publisher and the graph has been stable for a moment: a player started after
+  the nodes would otherwise publish a short bag before DDS discovery connected them. At the end
+  it waits until reliable subscribers acknowledged everything, and reports per-topic counts.
+* ``--clock`` publishes ``/clock`` (rosgraph_msgs/Clock) with the bag time of each message before
+  it, like ``ros2 bag play --clock`` (run the nodes with ``use_sim_time:=true`` to use it).
 
 * Messages are published in bag-time order as the recorded CDR bytes (no re-serialization),
   each topic with the QoS it was recorded with (``offered_qos_profiles``; several offered
@@ -37,11 +45,18 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability
+from rosgraph_msgs.msg import Clock
 
 from gpis_grasp_ros.data import bagio
 from gpis_grasp_ros.ros.conversions import rclpy_message_class
 
 _INFINITE_SEC = 2 ** 31 - 1  # rosbag2 stores "infinite" as 9223372036 s; anything this large is "default"
+#: Default bound (s) of the wait for subscribers before the first message.
+DEFAULT_WAIT = 5.0
+#: The matched/graph state must be unchanged this long (s) before playback starts.
+GRAPH_SETTLE = 0.3
+CLOCK_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
 
 
 def _duration(t: Any) -> Duration | None:
@@ -97,15 +112,16 @@ class BagPlayer:
         topics: topics to play (default all; with or without the leading '/').
         remap: recorded topic → published topic.
         reliable: publish every topic RELIABLE (otherwise the recorded reliability).
-        wait_for_subscribers: seconds to wait before the first message until every publisher has a
-            matched subscription (default: 2 s when ``rate == 0``, else 0).
+        wait_for_subscribers: seconds to wait at most before the first message until every topic
+            with subscribers in the graph is matched (default :data:`DEFAULT_WAIT`; 0 = do not wait).
+        clock: publish ``/clock`` with the bag time of each message.
         ack_timeout: seconds to wait for acknowledgements of each message when ``rate == 0``.
     """
 
     def __init__(self, node_or_context: Node | Context | None, bag_path: str | Path, rate: float = 1.0,
                  loop: bool = False, topics: Iterable[str] | None = None, remap: Mapping[str, str] | None = None,
                  *, reliable: bool = False, wait_for_subscribers: float | None = None,
-                 ack_timeout: float = 5.0) -> None:
+                 ack_timeout: float = 5.0, clock: bool = False) -> None:
         if not (rate >= 0):
             raise ValueError(f'rate must be >= 0 (0 = as fast as possible), got {rate}')
         self.bag_path = Path(bag_path)
@@ -114,8 +130,7 @@ class BagPlayer:
         self.rate = float(rate)
         self.loop = bool(loop)
         self.ack_timeout = float(ack_timeout)
-        self.wait_for_subscribers = (2.0 if self.rate == 0 else 0.0) if wait_for_subscribers is None \
-            else float(wait_for_subscribers)
+        self.wait_for_subscribers = DEFAULT_WAIT if wait_for_subscribers is None else float(wait_for_subscribers)
         info = bagio.bag_topics(self.bag_path)
         if topics is None:
             selected = sorted(info)
@@ -138,6 +153,7 @@ class BagPlayer:
         self.topics = selected
         self.remap = remap
         self.publishers: dict[str, Any] = {}
+        self.clock_pub = None
         self.qos: dict[str, QoSProfile] = {}
         try:
             for topic in selected:
@@ -147,6 +163,7 @@ class BagPlayer:
                 msg_class = rclpy_message_class(info[topic]['type'])
                 self.qos[topic] = qos
                 self.publishers[topic] = self.node.create_publisher(msg_class, remap.get(topic, topic), qos)
+            self.clock_pub = self.node.create_publisher(Clock, '/clock', CLOCK_QOS) if clock else None
         except BaseException:
             for pub in self.publishers.values():
                 self.node.destroy_publisher(pub)
@@ -186,6 +203,9 @@ class BagPlayer:
         for pub in self.publishers.values():
             self.node.destroy_publisher(pub)
         self.publishers.clear()
+        if self.clock_pub is not None:
+            self.node.destroy_publisher(self.clock_pub)
+            self.clock_pub = None
         if self._owns_node:
             self.node.destroy_node()
 
@@ -219,17 +239,57 @@ class BagPlayer:
         finally:
             self.done.set()
 
+    def unmatched(self) -> tuple[dict[str, int], bool]:
+        """Graph subscribers not yet matched per topic ({topic: missing}) and whether any topic is matched."""
+        missing, any_matched = {}, False
+        for topic, pub in self.publishers.items():
+            matched = pub.get_subscription_count()
+            in_graph = self.node.count_subscribers(pub.topic_name)
+            any_matched = any_matched or matched > 0
+            if in_graph > matched or in_graph == 0:
+                missing[topic] = max(in_graph - matched, 0)
+        return missing, any_matched
+
     def _wait_for_matching(self) -> None:
+        """Wait until every topic with subscribers in the graph is matched and the graph is stable.
+
+        Topics nobody subscribes to do not hold playback up once another topic is matched; with no
+        subscriber at all the player waits the whole ``wait_for_subscribers`` and plays anyway.
+        """
+        if self.wait_for_subscribers <= 0:
+            return
         deadline = time.monotonic() + self.wait_for_subscribers
-        while True:
-            lonely = [t for t, p in self.publishers.items() if p.get_subscription_count() == 0]
-            if not lonely or self._stop.is_set():
+        last_state, stable_since = None, time.monotonic()
+        while not self._stop.is_set():
+            missing, any_matched = self.unmatched()
+            state = (tuple(sorted(missing.items())), any_matched)
+            now = time.monotonic()
+            if state != last_state:
+                last_state, stable_since = state, now
+            unmatched_with_subs = any(n > 0 for n in missing.values())
+            if any_matched and not unmatched_with_subs and now - stable_since >= GRAPH_SETTLE:
                 return
-            if time.monotonic() >= deadline:
-                if self.wait_for_subscribers > 0:
-                    self.node.get_logger().warning(f"no subscribers on {', '.join(lonely)}; playing anyway")
+            if now >= deadline:
+                lonely = [t for t, n in missing.items() if n == 0]
+                late = [t for t, n in missing.items() if n > 0]
+                text = []
+                if late:
+                    text.append(f"subscribers not yet matched on {', '.join(late)}")
+                if lonely and not any_matched:
+                    text.append('no subscriber on any topic')
+                if text:
+                    self.node.get_logger().warning('; '.join(text) + f' after {self.wait_for_subscribers:g} s; '
+                                                   'playing anyway')
                 return
-            self._stop.wait(0.01)
+            self._stop.wait(0.02)
+
+    def _wait_for_acks(self) -> None:
+        """Wait (bounded) until reliable subscribers acknowledged everything published."""
+        ack = Duration(seconds=self.ack_timeout)
+        for topic, pub in self.publishers.items():
+            if self.qos[topic].reliability == ReliabilityPolicy.RELIABLE and pub.get_subscription_count() > 0:
+                if not pub.wait_for_all_acked(ack):
+                    self.node.get_logger().warning(f'{topic}: not acknowledged within {self.ack_timeout} s')
 
     def _play_pass(self) -> None:
         start_wall: float | None = None
@@ -246,11 +306,18 @@ class BagPlayer:
                 if delay > 0 and self._stop.wait(delay):
                     return
             pub = self.publishers[record.topic]
+            if self.clock_pub is not None:
+                sec, nsec = divmod(int(record.t_ns), 1_000_000_000)
+                clock_msg = Clock()
+                clock_msg.clock.sec, clock_msg.clock.nanosec = sec, nsec
+                self.clock_pub.publish(clock_msg)
             pub.publish(record.raw)
             self.counts[record.topic] += 1
             if self.rate == 0 and self.qos[record.topic].reliability == ReliabilityPolicy.RELIABLE:
                 if not pub.wait_for_all_acked(ack):
                     self.node.get_logger().warning(f'{record.topic}: not acknowledged within {self.ack_timeout} s')
+        if self.rate > 0 and not self._stop.is_set():
+            self._wait_for_acks()
 
 
 # =========================================================================== command line
@@ -274,7 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO', help='rename topics')
     p.add_argument('--reliable', action='store_true', help='publish every topic RELIABLE')
     p.add_argument('--wait-for-subscribers', type=float, default=None, metavar='SEC',
-                   help='wait up to SEC for every topic to have a subscriber (default 2 with --rate 0, else 0)')
+                   help=f'wait up to SEC until every topic with subscribers in the graph is matched '
+                        f'(default {DEFAULT_WAIT:g}; 0 = do not wait)')
+    p.add_argument('--clock', action='store_true', help='publish /clock with the bag time of each message')
     p.add_argument('--keep-alive', action='store_true',
                    help='keep the (latched) publishers alive after playback until interrupted')
     return p
@@ -304,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         node = rclpy.create_node('bag_player')
         player = BagPlayer(node, args.bag, rate=args.rate, loop=args.loop, topics=args.topics, remap=remap,
-                           reliable=args.reliable, wait_for_subscribers=args.wait_for_subscribers)
+                           reliable=args.reliable, wait_for_subscribers=args.wait_for_subscribers, clock=args.clock)
         player.play(blocking=False)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
@@ -319,7 +388,9 @@ def main(argv: list[str] | None = None) -> int:
             status = 1
         else:
             total = sum(player.counts.values())
-            node.get_logger().info(f'played {total} messages from {args.bag} ({player.passes} pass(es))')
+            per_topic = ', '.join(f'{t} {n}' for t, n in sorted(player.counts.items()))
+            node.get_logger().info(f'played {total} messages from {args.bag} ({player.passes} pass(es)): {per_topic}')
+            print(f'played {total} messages ({player.passes} pass(es)): {per_topic}')
     except ValueError as err:
         print(f'gpis-grasp play: error: {err}', file=sys.stderr)
         status = 2

@@ -21,6 +21,9 @@ after each publication).
 from __future__ import annotations
 
 import threading
+import time
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from nav_msgs.msg import OccupancyGrid
@@ -31,8 +34,17 @@ from std_msgs.msg import String
 from gpis_grasp_interfaces.msg import FloatGrid
 from gpis_grasp_ros.core import noise_model, pipeline, sensing
 from gpis_grasp_ros.data import messages
-from gpis_grasp_ros.ros import conversions
-from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, declare, guarded, run_node, sensor_qos
+from gpis_grasp_ros.ros import conversions, validation
+from gpis_grasp_ros.ros.nodes.common import (
+    LATCHED_QOS,
+    GuardedNode,
+    declare,
+    guarded,
+    log_startup,
+    run_node,
+    sensor_qos,
+    watch_parameters,
+)
 
 MAX_PENDING_IMAGES = 30
 
@@ -97,11 +109,42 @@ def perception_parameters(node: Node, defaults: sensing.SensingParams) -> dict:
     )
 
 
-class SegmentationNode(Node):
-    """Accumulates frames and runs :func:`gpis_grasp_ros.core.sensing.segment_frames`."""
+def target_needs_point(target: str) -> bool:
+    """Whether the target mode reads target_point."""
+    return target in ('pixel', 'table')
+
+
+@dataclass(frozen=True)
+class BurstConfig:
+    """How frames are grouped into one estimate (see :class:`SegmentationNode`)."""
+
+    frames_to_average: int
+    min_frames: int
+    burst_timeout: float
+    max_stamp_gap: float
+    limits: validation.Limits
+
+
+class SegmentationNode(GuardedNode):
+    """Accumulates frames and runs :func:`gpis_grasp_ros.core.sensing.segment_frames`.
+
+    **Bursts.** Frames are collected until ``frames_to_average`` arrived, or the burst ends (no
+    frame for ``burst_timeout`` s): then an estimate is made from the frames collected if there
+    are at least ``min_frames`` (the log line and ``segmentation/status`` say how many were used).
+    Frames of two passes are never mixed: when header stamps go backwards (a replay restarting) or
+    jump by more than ``max_stamp_gap`` s, the frames collected so far are finished as their own
+    burst first. So a complete replay of a bag gives exactly the offline pipeline's grid, and a
+    replay that lost a few best-effort frames still gives an estimate (from fewer frames).
+
+    **Camera input QoS.** ``input_reliability: best_effort`` (default, like camera drivers'
+    sensor-data QoS) matches every publisher but may lose frames of large messages on a busy
+    link; ``reliable`` matches only reliable publishers (e.g. ``gpis-grasp play --reliable``) and
+    loses nothing on loopback.
+    """
 
     def __init__(self, **kwargs) -> None:
         super().__init__('segmentation_node', **kwargs)
+        lim = validation.Limits()
         self.input_mode = declare(self, 'input_mode', 'cloud',
                                   "'cloud': camera/depth/points; 'images': rgb + depth images + camera_info",
                                   choices=['cloud', 'images'], read_only=True)
@@ -113,7 +156,7 @@ class SegmentationNode(Node):
         defaults = sensing.SensingParams()
         self.params = sensing.SensingParams(
             grid_size=declare(self, 'grid_size', defaults.grid_size, 'M: cells per side of the M x M grid (paper: 25)',
-                              low=4, high=400),
+                              low=4, high=100),
             margin=declare(self, 'grid_margin', float(defaults.margin),
                            'margin around the object bounding box, as a fraction of its size', low=0.0, high=5.0),
             height_threshold=declare(self, 'height_threshold', float(defaults.height_threshold),
@@ -124,7 +167,18 @@ class SegmentationNode(Node):
                                     low=0.0, high=442.0),
             **perception_parameters(self, defaults),
         )
+        declare(self, 'min_frames', 3, 'fewest frames of a burst that make an estimate when the burst ends '
+                'before frames_to_average frames arrived', low=1, high=1000)
+        declare(self, 'burst_timeout', 0.5, 'a burst ends when no frame arrived for this long (s)', low=0.05, high=60.0)
+        declare(self, 'max_stamp_gap', 1.0, 'frames whose header stamps are further apart than this (s), or go '
+                'backwards, belong to different bursts', low=0.01, high=3600.0)
+        declare(self, 'max_image_pixels', lim.max_image_pixels, 'largest camera frame accepted (pixels); larger '
+                'messages are rejected before anything is allocated', low=1, high=50_000_000)
+        self._base_params = self.params
+        self.burst: BurstConfig = watch_parameters(self, self._build_config, self._apply_config)[1]
         self._frames: list[tuple[np.ndarray, np.ndarray]] = []
+        self._last_stamp_ns = 0
+        self._last_arrival = 0.0
         self._stamp = None
         self._frame_id = ''
         self._intrinsics = None
@@ -148,27 +202,74 @@ class SegmentationNode(Node):
         self.noise_pub = self.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
         #: latched outcome of the last segmentation: 'ok: ...' or 'failed: <reason>' (nothing published then)
         self.status_pub = self.create_publisher(String, 'segmentation/status', LATCHED_QOS)
+        self.create_timer(0.05, self._on_burst_timer)
+        inputs = (['camera/depth/points'] if self.input_mode == 'cloud' else
+                  ['camera/rgb/image_raw', 'camera/depth/image_raw', 'camera/rgb/camera_info'])
+        log_startup(self, inputs, ['object/occupancy', 'object/noise_map', 'segmentation/status'],
+                    ['input_mode', 'input_reliability', 'frames_to_average', 'min_frames', 'burst_timeout',
+                     'grid_size', 'target', 'sensor_model'])
+
+    # ------------------------------------------------------------------ parameters
+    def _build_config(self, v: dict[str, Any]) -> tuple[sensing.SensingParams, BurstConfig]:
+        """Parameter values → (SensingParams, BurstConfig); ValueError names the parameter."""
+        target = str(v['target'])
+        params = replace(self._base_params, grid_size=int(v['grid_size']), margin=float(v['grid_margin']),
+                         height_threshold=float(v['height_threshold']), color_threshold=float(v['color_threshold']),
+                         table_plane=_optional_box(v['table_plane'], 'table_plane'),
+                         roi_px=_optional_box(v['roi_px'], 'roi_px'),
+                         roi_table=_optional_box(v['roi_table'], 'roi_table'), target=target,
+                         target_point=(tuple(float(x) for x in v['target_point'])
+                                       if target in ('pixel', 'table') else None),
+                         max_opening_m=float(v['max_opening']), max_tilt_deg=float(v['max_tilt_deg']))
+        if target_needs_point(target) and len(v['target_point']) != 2:
+            raise ValueError(f"target '{target}' needs target_point with 2 numbers")
+        # min_frames above frames_to_average means: only complete bursts make an estimate
+        burst = BurstConfig(frames_to_average=int(v['frames_to_average']),
+                            min_frames=min(int(v['min_frames']), int(v['frames_to_average'])),
+                            burst_timeout=float(v['burst_timeout']), max_stamp_gap=float(v['max_stamp_gap']),
+                            limits=validation.Limits(max_image_pixels=int(v['max_image_pixels'])))
+        return params, burst
+
+    def _apply_config(self, config: tuple[sensing.SensingParams, BurstConfig]) -> None:
+        self.params, self.burst = config
+        self.frames_to_average = self.burst.frames_to_average
 
     # ------------------------------------------------------------------ inputs
     def _on_cloud(self, msg: PointCloud2) -> None:
         try:
+            validation.check_pointcloud(msg, self.burst.limits)
             xyz, rgb = messages.pointcloud2_to_xyz_rgb(msg)
             rgb_f, depth_f, intrinsics = sensing.frames_from_clouds(xyz[None], rgb[None])
+            lim = self.burst.limits
+            if not all(np.isfinite(f) and lim.min_focal_px <= f <= lim.max_focal_px
+                       for f in (intrinsics.fx, intrinsics.fy)):
+                raise ValueError(f'the points give implausible focal lengths fx={intrinsics.fx:.3g}, '
+                                 f'fy={intrinsics.fy:.3g} px (x, y, z are not an organized camera cloud)')
         except ValueError as exc:
-            self.get_logger().warning(f'ignoring PointCloud2 on camera/depth/points: {exc}')
+            self.reject(f'ignoring PointCloud2 on camera/depth/points: {exc}')
             return
         self._add_frame(rgb_f[0], depth_f[0], intrinsics, msg.header)
 
     def _on_info(self, msg: CameraInfo) -> None:
         try:
-            self._intrinsics = sensing.CameraIntrinsics(*messages.camera_info_to_intrinsics(msg))
+            self._intrinsics = sensing.CameraIntrinsics(*validation.check_camera_info(msg, self.burst.limits))
         except (ValueError, TypeError) as exc:
-            self.get_logger().warning(f'ignoring CameraInfo: {exc}')
+            self.reject(f'ignoring CameraInfo: {exc}')
 
     def _on_rgb(self, msg: Image) -> None:
+        try:
+            validation.check_image(msg, self.burst.limits, 'Image camera/rgb/image_raw')
+        except ValueError as exc:
+            self.reject(f'ignoring {exc}')
+            return
         self._pair(msg, self._pending_rgb, self._pending_depth, rgb_first=True)
 
     def _on_depth(self, msg: Image) -> None:
+        try:
+            validation.check_image(msg, self.burst.limits, 'Image camera/depth/image_raw')
+        except ValueError as exc:
+            self.reject(f'ignoring {exc}')
+            return
         self._pair(msg, self._pending_depth, self._pending_rgb, rgb_first=False)
 
     def _pair(self, msg: Image, mine: dict, other: dict, rgb_first: bool) -> None:
@@ -197,41 +298,75 @@ class SegmentationNode(Node):
             if rgb_msg.encoding == 'bgr8':
                 rgb = rgb[..., ::-1]
         except ValueError as exc:
-            self.get_logger().warning(f'ignoring image pair: {exc}')
+            self.reject(f'ignoring image pair: {exc}')
             return
         self._add_frame(rgb, depth.astype(np.float64), self._intrinsics, depth_msg.header)
 
     # ------------------------------------------------------------------ processing
     def _add_frame(self, rgb: np.ndarray, depth: np.ndarray, intrinsics, header) -> None:
+        stamp_ns = messages.stamp_to_ns(header.stamp)
+        finished = []
         with self._lock:
-            if self._frames and (self._frames[0][0].shape != rgb.shape
-                                 or not _same_camera(self._intrinsics_used, intrinsics)):
-                self.get_logger().warning('camera geometry changed; restarting the frame average')
-                self._frames = []
+            burst = self.burst
+            if self._frames:
+                gap = (stamp_ns - self._last_stamp_ns) * 1e-9
+                if gap < 0 or gap > burst.max_stamp_gap:
+                    why = 'stamps went backwards' if gap < 0 else f'stamps jumped by {gap:.2f} s'
+                    finished.append(self._take_burst(f'burst ended: {why}'))
+                elif self._frames[0][0].shape != rgb.shape or not _same_camera(self._intrinsics_used, intrinsics):
+                    self.get_logger().warning(f'camera geometry changed; dropping {len(self._frames)} frame(s) of '
+                                              'the other geometry')
+                    self._frames = []
             self._frames.append((rgb, depth))
             self._intrinsics_used = intrinsics
+            self._last_stamp_ns, self._last_arrival = stamp_ns, time.monotonic()
             self._stamp, self._frame_id = header.stamp, header.frame_id
-            if len(self._frames) < self.frames_to_average:
+            if len(self._frames) >= burst.frames_to_average:
+                finished.append(self._take_burst('frames_to_average reached'))
+        for item in finished:
+            if item is not None:
+                self._estimate(*item)
+
+    def _on_burst_timer(self) -> None:
+        with self._lock:
+            timeout = self.burst.burst_timeout
+            if not self._frames or time.monotonic() - self._last_arrival < timeout:
                 return
-            frames, self._frames = self._frames, []
+            item = self._take_burst(f'burst ended: no frame for {timeout:g} s')
+        if item is not None:
+            self._estimate(*item)
+
+    def _take_burst(self, why: str) -> tuple | None:
+        """Take the collected frames (caller holds the lock); None when fewer than min_frames."""
+        frames, self._frames = self._frames, []
+        if len(frames) < self.burst.min_frames:
+            if frames:
+                self.get_logger().warning(f'{why}: {len(frames)} frame(s) collected, fewer than min_frames='
+                                          f'{self.burst.min_frames}; no estimate')
+            return None
+        return frames, self._intrinsics_used, self._stamp, self._frame_id, why
+
+    def _estimate(self, frames: list, intrinsics, stamp, frame_id: str, why: str) -> None:
+        """Segment one burst of frames and publish the grids."""
         rgb_frames = np.stack([f[0] for f in frames])
         depth_frames = np.stack([f[1] for f in frames])
         try:
             result = sensing.segment_frames(rgb_frames, depth_frames, intrinsics, self.params,
-                                            frame_id=self._frame_id)
+                                            frame_id=frame_id)
         except ValueError as exc:
             self.get_logger().warning(f'segmentation failed, nothing published: {exc}')
             self.status_pub.publish(String(data=f'failed: {exc}'))
             return
         factory = conversions.RclpyFactory()
-        header_msg = messages.header(factory, messages.stamp_to_ns(self._stamp), self._frame_id)
+        header_msg = messages.header(factory, messages.stamp_to_ns(stamp), frame_id)
         occ, noise, geometry = pipeline.publishable_grids(result)
         self.occupancy_pub.publish(messages.numpy_to_occupancy_grid(factory, occ, geometry, header_msg))
         self.noise_pub.publish(messages.numpy_to_float_grid(factory, noise, geometry, header_msg, 'm^2'))
         summary = (f'published {result.geometry.height}x{result.geometry.width} occupancy and noise map from '
                    f'{len(frames)} frames (worth {result.effective_frames:.1f} independent): '
                    f'{result.objects_seen} object(s) on the table, target {result.geometry.size_m[0] * 1000:.0f} mm '
-                   f'grid, table tilt {result.table.tilt_deg:.1f} deg, {int(result.missing.sum())} missing cells')
+                   f'grid, table tilt {result.table.tilt_deg:.1f} deg, {int(result.missing.sum())} missing cells '
+                   f'({why})')
         self.get_logger().info(summary)
         self.status_pub.publish(String(data=f'ok: {summary}'))
 
