@@ -463,6 +463,13 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     n_steps = int(n_seg.max(initial=1.0)) + 1
     chunk = max(1, MAX_POINTS_PER_CHUNK // (n_lines * n_steps))
 
+    if t_total == 0:
+        e2, e1 = np.zeros((0, 2)), np.zeros(0)
+        none = np.zeros(0, dtype=bool)
+        return Contacts(c1=e2.reshape(lead + (2,)), c2=e2.reshape(lead + (2,)), n1=e2.reshape(lead + (2,)),
+                        n2=e2.reshape(lead + (2,)), valid=none.reshape(lead), no_contact=none.reshape(lead),
+                        start_inside=none.reshape(lead), opening_exceeded=none.reshape(lead), width=e1.reshape(lead),
+                        clearance1=e1.reshape(lead), clearance2=e1.reshape(lead), no_normal=none.reshape(lead))
     parts = [_march_chunk(bank, a[s:s + chunk], unit[s:s + chunk], length[s:s + chunk], n_seg[s:s + chunk],
                           offsets, n_steps, None if idx is None else idx[s:s + chunk], gripper.patch_cells(g))
              for s in range(0, t_total, chunk)]

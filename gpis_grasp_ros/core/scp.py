@@ -20,14 +20,39 @@ convex optimization" (RSS 2013), Algorithm 1:
   is minimised over the trust box ``|d|_∞ <= s`` as a QP with slack variables
   ``t_i >= max(g_i + ∇g_iᵀd, 0)``. A proximal term keeps the QP strictly convex, which OSQP
   (ADMM) needs to converge quickly on what would otherwise be a degenerate LP: ``½ ρ_d ‖d‖²`` with
-  ``ρ_d = prox_rel · (‖∇f‖∞ + μ max_i ‖∇g_i‖₁) / s`` (so that, in box-normalised units d/s, the
-  curvature is ``prox_rel`` times the largest linear coefficient and the step still reaches the
-  box when the model says so) and ``½ ρ_t ‖t‖²`` with ``ρ_t = prox_rel · μ / max(|g|, s‖∇g‖₁)``.
+  ``ρ_d = prox_rel · (‖∇f‖∞ + w_μ μ max_i ‖∇g_i‖₁) / s`` (so that, in box-normalised units d/s,
+  the curvature is ``prox_rel`` times the largest linear coefficient and the step still reaches
+  the box when the model says so; ``w_μ = prox_penalty_weight`` < 1 keeps a large penalty from
+  damping the objective's own step — with w_μ = 1 and μ = 10³ the steps along an active
+  constraint shrank to a few hundredths of a cell and SCP crept for ~100 iterations) and
+  ``½ ρ_t ‖t‖²`` with ``ρ_t = prox_rel · μ / max(|g|, s‖∇g‖₁)``.
 * **Trust region.** The step is accepted when the ratio of actual to predicted merit
   improvement is at least ``accept_ratio``; the box then grows by ``trust_expand`` (to at most
-  ``trust_radius_max``), otherwise it shrinks by ``trust_shrink``. The convexify loop stops
-  when the predicted improvement falls below ``improve_tol`` (relative to max(1, |φ|)) or the
-  box below ``trust_radius_min``.
+  ``trust_radius_max``), otherwise it shrinks by ``trust_shrink``. With
+  ``trust_expand_from_step`` the update is relative to the step actually taken (grow to
+  ``trust_expand·‖d‖∞`` if that is larger than the box, shrink to ``trust_shrink·‖d‖∞``), which
+  avoids iterations spent shrinking a box the step did not reach.
+* **Convergence test** (per restart, checked only at a point whose constraints hold to
+  ``constraint_tol``; otherwise the penalty is raised instead). A restart has *converged* when
+  one of these holds:
+
+  1. *model stationarity*: the predicted merit improvement of the QP step is at most
+     ``improve_tol · max(1, |φ|)``;
+  2. *step and objective tolerance*: an accepted step moved x by at most ``step_tol``
+     (∞-norm) and improved the merit by at most ``objective_tol · max(1, |φ|)``;
+  3. *trust region*: after a rejected step the box is below ``trust_radius_min`` (no step larger
+     than that improves the merit enough — the step tolerance seen from the other side).
+
+  A run that ends otherwise is *not* converged and says why: the iteration cap
+  (``max_iterations``), constraints still violated at ``penalty_max``, or
+  ``max_qp_failures`` consecutive failed QP subproblems.
+* **QP status.** OSQP's status is checked on every solve: only ``solved`` / ``solved inaccurate``
+  with a finite step is used. A failed subproblem is never read as stationarity (a zero step would
+  otherwise look converged): the box shrinks and the failure is counted per restart
+  (``ScpResult.qp_failures``, ``qp_status``).
+* **History.** ``objective_history[i]`` / ``merit_history[i]`` hold restart i's objective and
+  merit at the start and after every iteration it took part in (the supplementary convergence
+  plots of the paper).
 
 **Batching.** All restarts advance in lock-step: one block-diagonal OSQP problem holds every
 restart's subproblem (inactive restarts get a trivial block) and is set up once; each iteration
@@ -36,7 +61,9 @@ objective/constraint function is called on a batch of points (all candidates, or
 finite-difference points of all restarts, at once), so it can be vectorised by the caller.
 
 Per restart the result reports iterations (QP solves), function evaluations, a convergence
-flag, feasibility and the reason the run stopped.
+flag, feasibility, the reason the run stopped, failed QP solves and the objective history.
+``monitor`` (optional) is called after every iteration and may raise to abort (cooperative
+cancellation).
 """
 
 from __future__ import annotations
@@ -54,8 +81,13 @@ BatchFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 REASON_CONVERGED_MODEL = 'converged: predicted improvement below tolerance'
 REASON_CONVERGED_TRUST = 'converged: trust region below minimum size'
+REASON_CONVERGED_STEP = 'converged: step and objective change below tolerance'
 REASON_PENALTY_LIMIT = 'stopped: constraints violated at the maximum penalty'
 REASON_ITERATION_LIMIT = 'stopped: iteration limit'
+REASON_QP_FAILED = 'stopped: QP solver failed'
+
+#: OSQP statuses whose solution is used as a step (anything else is a failed subproblem).
+QP_OK_STATUSES = ('solved', 'solved inaccurate')
 
 
 @dataclass(frozen=True)
@@ -69,18 +101,25 @@ class ScpSettings:
     trust_radius_max: float = 10.0
     trust_shrink: float = 0.3
     trust_expand: float = 2.0
+    trust_expand_from_step: bool = False
     accept_ratio: float = 0.1
     penalty_init: float = 10.0
     penalty_factor: float = 10.0
     penalty_max: float = 1e4
     constraint_tol: float = 1e-4
     improve_tol: float = 1e-8
+    step_tol: float = 0.0
+    objective_tol: float = 0.0
+    max_qp_failures: int = 3
     max_iterations: int = 200
     quasi_newton: bool = False
     prox: float = 1e-8
     prox_rel: float = 0.1
+    prox_penalty_weight: float = 0.01
     osqp_eps: float = 1e-6
     osqp_max_iter: int = 20000
+    osqp_rho: float = 0.1
+    osqp_rho_interval: int = 25
 
 
 @dataclass
@@ -100,6 +139,10 @@ class ScpResult:
     qp_time: float = 0.0
     eval_time: float = 0.0
     history: list[np.ndarray] = field(default_factory=list)
+    objective_history: list[np.ndarray] = field(default_factory=list)  # per restart: f at x after each iteration
+    merit_history: list[np.ndarray] = field(default_factory=list)  # per restart: ℓ1 merit (current μ)
+    qp_failures: np.ndarray | None = None  # (R,) failed QP subproblems seen by each restart
+    qp_status: list[str] = field(default_factory=list)  # per restart: last failed OSQP status, '' if none
 
     @property
     def merit(self) -> np.ndarray:
@@ -119,6 +162,7 @@ class _BlockQp:
         self.quasi_newton = settings.quasi_newton
         self.prox = settings.prox
         self.prox_rel = settings.prox_rel
+        self.prox_mu = settings.prox_penalty_weight
         nv, nc = n + m, 2 * m + n
         self.nv, self.nc = nv, nc
         # P: upper triangle of the d block (dense when quasi-Newton, diagonal otherwise) + t diagonal.
@@ -154,8 +198,11 @@ class _BlockQp:
         self.A = sp.csc_matrix((data, indices, indptr), shape=(r * nc, r * nv))
         self.solver = osqp.OSQP()
         q, lo, hi = self._vectors(np.zeros((r, n)), np.ones(r), -np.ones((r, m)), np.zeros((r, n)), np.zeros((r, n)))
+        # rho adapted every `osqp_rho_interval` ADMM iterations (OSQP's default adapts on a wall-clock
+        # budget, which would make the iterates — and so the planned grasp — depend on machine load).
         self.solver.setup(self.P, q, self.A, lo, hi, verbose=False, polishing=True, eps_abs=settings.osqp_eps,
-                          eps_rel=settings.osqp_eps, max_iter=settings.osqp_max_iter)
+                          eps_rel=settings.osqp_eps, max_iter=settings.osqp_max_iter,
+                          adaptive_rho_interval=settings.osqp_rho_interval, rho=settings.osqp_rho)
 
     def _a_data(self, jac: np.ndarray) -> np.ndarray:
         r, m, n = jac.shape
@@ -169,15 +216,17 @@ class _BlockQp:
         up = np.concatenate([-g, np.full((r, m), np.inf), hi], axis=1).ravel()
         return q, low, up
 
-    def solve(self, grad, hess, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray]:
-        """Steps d (R, n) and multipliers (R, m) of the linearised constraints of all blocks.
+    def solve(self, grad, hess, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, str]:
+        """Steps d (R, n), multipliers (R, m) of the linearised constraints of all blocks, OSQP status.
 
-        Inactive blocks: pass zeros and lo = hi = 0.
+        Inactive blocks: pass zeros and lo = hi = 0. The status is OSQP's (``'solved'``, ...),
+        or ``'non-finite solution'`` when the returned step is not finite (the step is then zero
+        and must not be used: see :data:`QP_OK_STATUSES`).
         """
         q, low, up = self._vectors(grad, mu, g, lo, hi)
         jn = np.abs(jac).sum(axis=2)  # (R, m) ‖∇g_i‖₁
         rad = np.maximum(radius, 1e-12)
-        lin = np.abs(grad).max(axis=1, initial=0.0) + mu * jn.max(axis=1, initial=0.0)
+        lin = np.abs(grad).max(axis=1, initial=0.0) + self.prox_mu * mu * jn.max(axis=1, initial=0.0)
         rho_d = np.maximum(self.prox, self.prox_rel * lin / rad)
         t_scale = np.maximum(np.maximum(np.abs(g), rad[:, None] * jn).max(axis=1, initial=0.0), 1e-12)
         rho_t = np.maximum(self.prox, self.prox_rel * mu / t_scale)
@@ -186,13 +235,18 @@ class _BlockQp:
         px = np.concatenate([hp, np.repeat(rho_t[:, None], self.m, axis=1)], axis=1).ravel()
         self.solver.update(q=q, l=low, u=up, Ax=self._a_data(jac), Px=px)
         res = self.solver.solve(raise_error=False)
-        z = np.asarray(res.x, dtype=np.float64).reshape(self.r, self.nv)
+        status = str(res.info.status)
+        z = np.asarray(res.x if res.x is not None else np.full(self.r * self.nv, np.nan),
+                       dtype=np.float64).reshape(self.r, self.nv)
         d = z[:, :self.n]
-        lam = np.asarray(res.y, dtype=np.float64).reshape(self.r, self.nc)[:, :self.m]
+        y = res.y if res.y is not None else np.full(self.r * self.nc, np.nan)
+        lam = np.asarray(y, dtype=np.float64).reshape(self.r, self.nc)[:, :self.m]
         if not np.all(np.isfinite(d)):
             d = np.zeros_like(d)
+            if status in QP_OK_STATUSES:
+                status = 'non-finite solution'
         lam = np.where(np.isfinite(lam), np.clip(lam, 0.0, mu[:, None]), 0.0)
-        return np.clip(d, lo, hi), lam
+        return np.clip(d, lo, hi), lam, status
 
 
 def _merit(f: np.ndarray, g: np.ndarray, mu: np.ndarray) -> np.ndarray:
@@ -278,7 +332,12 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
     reason = [''] * r
     qp = _BlockQp(r, n, m, st)
     qp_solves = 0
+    qp_failures = np.zeros(r, dtype=np.int64)
+    qp_failed_run = np.zeros(r, dtype=np.int64)  # consecutive failures
+    qp_status = [''] * r
     history = [x.copy()] if record_history else []
+    f_hist: list[list[float]] = [[float(v)] for v in f]
+    m_hist: list[list[float]] = [[float(v)] for v in _merit(f, g, mu)]
 
     while active.any():
         # Trust-region subproblem for every active restart (inactive blocks are trivial).
@@ -286,49 +345,77 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
         hi = np.where(active[:, None], np.minimum(s[:, None], upper - x), 0.0)
         act = active[:, None]
         t0 = time.perf_counter()
-        d, lam = qp.solve(np.where(act, grad, 0.0), hess, np.where(active[:, None, None], jac, 0.0),
-                     np.where(act, g, -1.0), np.where(active, mu, 1.0), lo, hi, np.where(active, s, 1.0))
+        d, lam, status = qp.solve(np.where(act, grad, 0.0), hess, np.where(active[:, None, None], jac, 0.0),
+                                  np.where(act, g, -1.0), np.where(active, mu, 1.0), lo, hi, np.where(active, s, 1.0))
         timers['qp'] += time.perf_counter() - t0
         qp_solves += 1
         iterations[active] += 1
+        qp_ok = status in QP_OK_STATUSES
         merit = _merit(f, g, mu)
-        model = (f + np.einsum('rn,rn->r', grad, d) + 0.5 * np.einsum('rn,rnk,rk->r', d, hess, d)
-                 + mu * np.maximum(g + np.einsum('rmn,rn->rm', jac, d), 0.0).sum(axis=1))
-        predicted = merit - model
-        small = active & ~(predicted > st.improve_tol * np.maximum(1.0, np.abs(merit)))
-        cand = np.flatnonzero(active & ~small)
         accept = np.zeros(r, dtype=bool)
         reject = np.zeros(r, dtype=bool)
-        if cand.size:
-            xn = np.clip(x[cand] + d[cand], lower[cand], upper[cand])
-            fn, gn = call(xn)
-            evals[cand] += 1
-            actual = merit[cand] - _merit(fn, gn, mu[cand])
-            ok = actual >= st.accept_ratio * predicted[cand]
-            acc = cand[ok]
-            accept[acc] = True
-            reject[cand[~ok]] = True
-            if acc.size:
-                step = xn[ok] - x[acc]
-                x[acc] = xn[ok]
-                f[acc] = fn[ok]
-                g[acc] = gn[ok]
-                s[acc] = np.minimum(s[acc] * st.trust_expand, st.trust_radius_max)
-                lag_old = grad[acc] + np.einsum('km,kmn->kn', lam[acc], jac[acc])
-                grad[acc], jac[acc] = derivatives(acc, f[acc], g[acc])
-                if st.quasi_newton:
-                    lag_new = grad[acc] + np.einsum('km,kmn->kn', lam[acc], jac[acc])
-                    hess[acc] = _damped_bfgs(hess[acc], step, lag_new - lag_old)
-            s[reject] *= st.trust_shrink
+        small = np.zeros(r, dtype=bool)
+        flat = np.zeros(r, dtype=bool)
+        if qp_ok:
+            qp_failed_run[active] = 0
+            model = (f + np.einsum('rn,rn->r', grad, d) + 0.5 * np.einsum('rn,rnk,rk->r', d, hess, d)
+                     + mu * np.maximum(g + np.einsum('rmn,rn->rm', jac, d), 0.0).sum(axis=1))
+            predicted = merit - model
+            scale = np.maximum(1.0, np.abs(merit))
+            small = active & ~(predicted > st.improve_tol * scale)
+            cand = np.flatnonzero(active & ~small)
+            if cand.size:
+                xn = np.clip(x[cand] + d[cand], lower[cand], upper[cand])
+                fn, gn = call(xn)
+                evals[cand] += 1
+                actual = merit[cand] - _merit(fn, gn, mu[cand])
+                ok = actual >= st.accept_ratio * predicted[cand]
+                acc = cand[ok]
+                accept[acc] = True
+                reject[cand[~ok]] = True
+                if acc.size:
+                    step = xn[ok] - x[acc]
+                    # objective and step tolerance: an accepted step that moved x by at most step_tol
+                    # (∞-norm) and the merit by at most objective_tol (relative to max(1, |φ|))
+                    flat[acc] = ((np.abs(step).max(axis=1, initial=0.0) <= st.step_tol)
+                                 & (actual[ok] <= st.objective_tol * scale[acc]))
+                    x[acc] = xn[ok]
+                    f[acc] = fn[ok]
+                    g[acc] = gn[ok]
+                    # expand from the step actually taken (an interior step says the box was not binding)
+                    taken = np.abs(d[acc]).max(axis=1, initial=0.0)
+                    s[acc] = np.minimum(np.maximum(s[acc], taken * st.trust_expand), st.trust_radius_max) \
+                        if st.trust_expand_from_step else np.minimum(s[acc] * st.trust_expand, st.trust_radius_max)
+                    lag_old = grad[acc] + np.einsum('km,kmn->kn', lam[acc], jac[acc])
+                    grad[acc], jac[acc] = derivatives(acc, f[acc], g[acc])
+                    if st.quasi_newton:
+                        lag_new = grad[acc] + np.einsum('km,kmn->kn', lam[acc], jac[acc])
+                        hess[acc] = _damped_bfgs(hess[acc], step, lag_new - lag_old)
+                if st.trust_expand_from_step:  # shrink below the rejected step, not just the box
+                    s[reject] = st.trust_shrink * np.minimum(s[reject], np.abs(d[reject]).max(axis=1, initial=0.0))
+                else:
+                    s[reject] *= st.trust_shrink
+        else:
+            # A failed subproblem says nothing about stationarity: never "converged" from it. Shrink
+            # the box (a smaller, better-conditioned QP) and stop after max_qp_failures in a row.
+            qp_failures[active] += 1
+            qp_failed_run[active] += 1
+            for i in np.flatnonzero(active):
+                qp_status[i] = status
+            s[active] *= st.trust_shrink
+            for i in np.flatnonzero(active & (qp_failed_run >= st.max_qp_failures)):
+                active[i] = False
+                reason[i] = f'{REASON_QP_FAILED} ({status})'
         if record_history:
             history.append(x.copy())
         tiny = reject & (s < st.trust_radius_min)
-        inner_done = small | tiny
+        inner_done = small | tiny | flat
         for i in np.flatnonzero(inner_done):
             if np.max(g[i], initial=-np.inf) <= st.constraint_tol:
                 active[i] = False
                 converged[i] = True
-                reason[i] = REASON_CONVERGED_MODEL if small[i] else REASON_CONVERGED_TRUST
+                reason[i] = (REASON_CONVERGED_MODEL if small[i] else REASON_CONVERGED_STEP if flat[i]
+                             else REASON_CONVERGED_TRUST)
             elif mu[i] * st.penalty_factor > st.penalty_max * (1 + 1e-12):
                 active[i] = False
                 reason[i] = REASON_PENALTY_LIMIT
@@ -339,6 +426,10 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
         for i in np.flatnonzero(over):
             active[i] = False
             reason[i] = REASON_ITERATION_LIMIT
+        merit_now = _merit(f, g, mu)
+        for i in np.flatnonzero(iterations == qp_solves):  # restarts that took part in this iteration
+            f_hist[i].append(float(f[i]))
+            m_hist[i].append(float(merit_now[i]))
         if monitor is not None:
             monitor(ScpProgress(iteration=qp_solves, active=active.copy(), x=x.copy(), fun=f.copy(),
                                 constraints=g.copy()))
@@ -346,7 +437,9 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
     feasible = np.max(g, axis=1, initial=-np.inf) <= st.constraint_tol
     return ScpResult(x=x, fun=f, constraints=g, penalty=mu, iterations=iterations, evaluations=evals,
                      converged=converged, feasible=feasible, reason=reason, qp_solves=qp_solves,
-                     qp_time=timers['qp'], eval_time=timers['eval'], history=history)
+                     qp_time=timers['qp'], eval_time=timers['eval'], history=history,
+                     objective_history=[np.asarray(h) for h in f_hist], merit_history=[np.asarray(h) for h in m_hist],
+                     qp_failures=qp_failures, qp_status=qp_status)
 
 
 def _damped_bfgs(b: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:

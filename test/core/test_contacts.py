@@ -185,3 +185,9 @@ def test_vanishing_gradient_gives_an_invalid_contact_not_an_antipodal_normal() -
     assert not con.valid and con.no_normal and np.all(np.isfinite(con.n1)) and np.all(np.isnan(con.n2))
     ok = find_contacts(SdfBank(sdf, G), CENTRE - [0.045, 0], CENTRE + [0.045, 0], GripperParams())
     assert ok.valid and not ok.no_normal
+
+
+def test_empty_batch() -> None:
+    bank = SdfBank(rectangle_sdf(G, tuple(CENTRE), (0.015, 0.01)), G)
+    con = find_contacts(bank, np.zeros((0, 2)), np.zeros((0, 2)), GripperParams())
+    assert con.valid.shape == (0,) and con.c1.shape == (0, 2)

@@ -6,9 +6,12 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
+import gpis_grasp_ros.core.scp as scp_module
 from gpis_grasp_ros.core.scp import (
+    REASON_CONVERGED_STEP,
     REASON_ITERATION_LIMIT,
     REASON_PENALTY_LIMIT,
+    REASON_QP_FAILED,
     ScpSettings,
     scp_minimize,
 )
@@ -96,3 +99,49 @@ def test_function_called_in_batches() -> None:
 
     scp_minimize(counted, STARTS, ScpSettings(fd_step=1e-6))
     assert calls[0] == 4 and calls[1] == 8  # all starts at once, then all their FD points at once
+
+
+def test_failed_qp_is_never_converged() -> None:
+    """OSQP stopping at its iteration limit is a failed subproblem, not a zero (stationary) step."""
+    res = scp_minimize(rosenbrock, STARTS, ScpSettings(fd_step=1e-6, osqp_max_iter=1, max_qp_failures=3))
+    assert not res.converged.any()
+    assert all(r.startswith(REASON_QP_FAILED) and 'maximum iterations' in r for r in res.reason)
+    assert np.all(res.qp_failures == 3) and all(st == 'maximum iterations reached' for st in res.qp_status)
+    ok = scp_minimize(quadratic, STARTS, ScpSettings(fd_step=1e-6))
+    assert np.all(ok.qp_failures == 0) and ok.qp_status == [''] * len(STARTS)
+
+
+def test_non_finite_qp_solution_is_a_failure(monkeypatch) -> None:
+    """A 'solved' status with a NaN solution must not become a zero step that looks converged."""
+    real_solve = scp_module.osqp.OSQP.solve
+
+    def nan_solve(self, *args, **kwargs):
+        res = real_solve(self, *args, **kwargs)
+        res.x[:] = np.nan
+        return res
+
+    monkeypatch.setattr(scp_module.osqp.OSQP, 'solve', nan_solve)
+    res = scp_minimize(quadratic, STARTS, ScpSettings(fd_step=1e-6))
+    assert not res.converged.any() and np.all(res.qp_failures > 0)
+    assert all('non-finite solution' in r for r in res.reason)
+    np.testing.assert_array_equal(res.x, STARTS)  # no step was taken
+
+
+def test_objective_history_and_convergence_from_feasible_starts() -> None:
+    """From feasible starts the objective never gets worse along the run (merit = objective there),
+    and every converged restart improved on its start."""
+    starts = np.array([[0.0, 0.0], [-3.0, 2.0], [2.0, -4.0], [0.5, 0.5]])  # all satisfy x + y <= 2
+    res = scp_minimize(quadratic, starts, ScpSettings(fd_step=1e-6, step_tol=1e-6, objective_tol=1e-10))
+    assert res.converged.all()
+    f0, _ = quadratic(starts)
+    for i, h in enumerate(res.objective_history):
+        assert h.shape == (res.iterations[i] + 1,) and h[0] == pytest.approx(f0[i])
+        assert np.all(np.diff(h) <= 1e-12)  # minimisation: non-increasing
+        assert h[-1] < h[0] and h[-1] == pytest.approx(res.fun[i])
+        np.testing.assert_allclose(res.merit_history[i], h, atol=1e-9)  # feasible throughout here
+    # a loose step/objective tolerance stops earlier, with that reason, still improving
+    loose = scp_minimize(rosenbrock, np.array([[-1.2, 1.0]]), ScpSettings(quasi_newton=True, fd_step=1e-7,
+                                                                          step_tol=0.05, objective_tol=1e-3,
+                                                                          max_iterations=300))
+    assert loose.converged[0] and loose.reason[0] == REASON_CONVERGED_STEP
+    assert loose.objective_history[0][-1] < loose.objective_history[0][0]
