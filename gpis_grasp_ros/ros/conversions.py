@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core import contacts
+from gpis_grasp_ros.core.grid import GridGeometry, rotation_to_quaternion
 from gpis_grasp_ros.data.messages import MessageFactory
 
 # array.array type codes of the ROS primitive types used by the builders (rclpy sequences).
@@ -70,40 +71,122 @@ def rclpy_message_class(type_name: str) -> type:
         raise ValueError(f"cannot import rclpy message type '{type_name}': {err}") from None
 
 # --------------------------------------------------------------------------- grasps
-def _yaw_quaternion(f: MessageFactory, axis: np.ndarray) -> Any:
-    """Quaternion rotating +x onto the in-plane direction ``axis`` (rotation about z)."""
-    a = np.asarray(axis, dtype=np.float64).ravel()
-    yaw = float(np.arctan2(a[1], a[0])) if np.isfinite(a[:2]).all() and np.any(a[:2]) else 0.0
-    return f.new('geometry_msgs/msg/Quaternion', x=0.0, y=0.0, z=float(np.sin(yaw / 2)), w=float(np.cos(yaw / 2)))
+#: Default height (m) of a jaw pad along the approach direction (markers, grasp-height clamp).
+DEFAULT_JAW_HEIGHT = 0.02
 
 
-def _pose_stamped(f: MessageFactory, header: Any, xy: np.ndarray, z: float, axis: np.ndarray) -> Any:
-    p = np.asarray(xy, dtype=np.float64).ravel()
-    x, y = (float(p[0]), float(p[1])) if np.isfinite(p[:2]).all() else (0.0, 0.0)
-    pose = f.new('geometry_msgs/msg/Pose', position=f.new('geometry_msgs/msg/Point', x=x, y=y, z=float(z)),
-                 orientation=_yaw_quaternion(f, axis))
-    return f.new('geometry_msgs/msg/PoseStamped', header=header, pose=pose)
+def grasp_frame(geometry: GridGeometry, axis: np.ndarray) -> np.ndarray:
+    """Orientation (3 x 3, columns = axes in the sensor frame) of a grasp on a grid in the table plane.
+
+    z = approach direction, towards the table (−table normal = the grid's z axis); x = closing direction
+    jaw1 → jaw2 (``axis``, grid (x, y)) in the table plane; y = z × x. A non-finite or zero ``axis``
+    gives the grid's x axis.
+    """
+    r = geometry.rotation_matrix
+    a = np.asarray(axis, dtype=np.float64).ravel()[:2]
+    n = float(np.hypot(a[0], a[1])) if a.size == 2 and np.isfinite(a).all() else 0.0
+    a = a / n if n > 0 else np.array([1.0, 0.0])
+    x = r @ np.array([a[0], a[1], 0.0])
+    z = r[:, 2]
+    return np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def fill_grasp_plan_response(response: Any, result: Any, header: Any, z: float | None = None) -> Any:
-    """Copy a planner ``GraspResult`` into a ``GraspPlan`` response (rclpy), in place; returns it.
+def _quaternion(f: MessageFactory, rotation: np.ndarray) -> Any:
+    q = rotation_to_quaternion(rotation)
+    return f.new('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
 
-    Jaw and grasp poses are in ``header``'s frame at depth ``z`` (m; pass ``posterior.geometry.z``,
-    the table plane; 0 when omitted), x axis along the closing direction jaw1 → jaw2. Non-finite
-    positions (failed plans) are written as 0.
+
+def _point(f: MessageFactory, p: np.ndarray, type_name: str = 'geometry_msgs/msg/Point') -> Any:
+    p = np.asarray(p, dtype=np.float64).ravel()
+    x, y, z = (float(v) for v in p) if np.isfinite(p).all() else (0.0, 0.0, 0.0)
+    return f.new(type_name, x=x, y=y, z=z)
+
+
+def _pose(f: MessageFactory, position: np.ndarray, rotation: np.ndarray) -> Any:
+    return f.new('geometry_msgs/msg/Pose', position=_point(f, position), orientation=_quaternion(f, rotation))
+
+
+def _pose_stamped(f: MessageFactory, header: Any, position: np.ndarray, rotation: np.ndarray) -> Any:
+    return f.new('geometry_msgs/msg/PoseStamped', header=header, pose=_pose(f, position, rotation))
+
+
+def _on_plane(geometry: GridGeometry, xy: Any, height: float) -> np.ndarray:
+    """Grid point(s) (..., 2) at ``height`` above the table → sensor frame; non-finite stays NaN."""
+    return geometry.to_sensor(np.asarray(xy, dtype=np.float64), height)
+
+
+def grasp_height_for(grasp_height: float, object_height: float, jaw_height: float = DEFAULT_JAW_HEIGHT) -> float:
+    """Height (m) above the table, along its normal, at which the jaws close (issue 12, item 6).
+
+    ``grasp_height >= 0``: that height. Negative (automatic): half the object's height above the table,
+    clamped to the jaw geometry: at least half a jaw pad's height ``jaw_height`` (the pad centre at the
+    jaw pose; its lower edge then stays at or above the table). An unknown object height
+    (``object_height <= 0``) gives that lowest height, the pads resting just above the table.
+    """
+    if grasp_height >= 0:
+        return float(grasp_height)
+    return max(0.5 * max(float(object_height), 0.0), 0.5 * float(jaw_height))
+
+
+def mean_shape_contacts(posterior: Any, result: Any, jaw_width: float) -> np.ndarray | None:
+    """Contacts (2, 2) (grid m) of the closing jaws on the GPIS mean shape, or None when either jaw finds
+    none (the contact model of :func:`gpis_grasp_ros.core.contacts.find_contacts`, opening not checked)."""
+    jaws = np.concatenate([np.ravel(result.jaw1), np.ravel(result.jaw2)])
+    if not bool(result.success) or not np.isfinite(jaws).all():
+        return None
+    bank = contacts.SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
+    con = contacts.find_contacts(bank, result.jaw1, result.jaw2, contacts.GripperParams(jaw_width=jaw_width),
+                                 check_opening=False)
+    if not bool(np.ravel(con.valid)[0]):
+        return None
+    return np.stack([np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]])
+
+
+def fill_grasp_plan_response(response: Any, result: Any, header: Any, z: float | None = None,
+                             geometry: GridGeometry | None = None, grasp_height: float = 0.0,
+                             contacts_xy: np.ndarray | None = None) -> Any:
+    """Copy a planner ``GraspResult`` into a ``GraspPlan`` response (or ``PlanGrasp`` result), in place.
+
+    Frames and meaning (also in GraspPlan.srv): everything is in ``header``'s frame (the sensor
+    frame of the GPIS), metres. ``geometry`` is the GPIS grid (its pose gives the table plane; when
+    omitted, a top-down grid at depth ``z``). ``jaw1``/``jaw2`` are the planned jaw positions (grid
+    (x, y)) lifted to ``grasp_height`` (m) above the table along its normal; ``grasp_pose`` is their
+    midpoint; all three share the grasp orientation of :func:`grasp_frame` (z = approach towards
+    the table, x = closing direction jaw1 → jaw2). ``contact1``/``contact2`` are the contacts of the
+    closing jaws on the GPIS mean shape (``contacts_xy`` (2, 2) grid metres, at ``grasp_height``);
+    ``width`` is their distance, the opening the gripper needs (NaN, and said in ``message``, when the
+    jaws find no contact on the mean shape); ``jaw_separation`` is ‖jaw2 − jaw1‖, the planned
+    approach opening. Non-finite positions (failed plans) are written as 0.
     """
     f = RclpyFactory()
-    z = 0.0 if z is None else float(z)
+    if geometry is None:
+        geometry = GridGeometry(0.0, 0.0, 1.0, 1, 1, 0.0 if z is None else float(z))
+    h = float(grasp_height)
+    rot = grasp_frame(geometry, result.axis)
     response.success = bool(result.success)
     response.message = str(result.message)
-    response.jaw1 = _pose_stamped(f, header, result.jaw1, z, result.axis)
-    response.jaw2 = _pose_stamped(f, header, result.jaw2, z, result.axis)
-    response.grasp_pose = _pose_stamped(f, header, result.center, z, result.axis)
+    jaw1, jaw2 = _on_plane(geometry, result.jaw1, h), _on_plane(geometry, result.jaw2, h)
+    response.jaw1 = _pose_stamped(f, header, jaw1, rot)
+    response.jaw2 = _pose_stamped(f, header, jaw2, rot)
+    response.grasp_pose = _pose_stamped(f, header, _on_plane(geometry, result.center, h), rot)
 
     def num(v: Any) -> float:
         return float(v) if v is not None else float('nan')
 
-    response.width = num(result.width)
+    touches = None if contacts_xy is None else np.asarray(contacts_xy, dtype=np.float64).reshape(2, 2)
+    if touches is not None and not np.isfinite(touches).all():
+        touches = None
+    c3 = _on_plane(geometry, touches, h) if touches is not None else np.full((2, 3), np.nan)
+    if hasattr(response, 'contact1'):
+        response.contact1 = f.new('geometry_msgs/msg/PointStamped', header=header, point=_point(f, c3[0]))
+        response.contact2 = f.new('geometry_msgs/msg/PointStamped', header=header, point=_point(f, c3[1]))
+        response.grasp_height = h
+        response.jaw_separation = float(np.linalg.norm(jaw2 - jaw1))  # of the published points (NaN: no grasp)
+        response.width = float(np.linalg.norm(c3[1] - c3[0]))
+        if response.success and touches is None:
+            response.message += '; the jaws find no contact on the mean shape: width unknown (NaN)'
+    else:  # interface without the contact fields: the planned jaw separation
+        response.width = num(result.width)
     response.probability_force_closure = num(result.p_f)
     response.probability_force_closure_std_error = num(result.p_f_std_error)
     response.ferrari_canny_on_mean = num(result.q_mean)
@@ -115,16 +198,18 @@ def fill_grasp_plan_response(response: Any, result: Any, header: Any, z: float |
 
 
 def grasp_markers(result: Any, header: Any, geometry: GridGeometry, jaw_width: float,
-                  jaw_thickness: float = 0.004, jaw_height: float = 0.02,
-                  contacts_xy: np.ndarray | None = None) -> Any:
-    """RViz ``visualization_msgs/MarkerArray`` (rclpy) of a planned grasp: two jaw plates (CUBE)
-    and the closing arrow jaw1 → jaw2, coloured by P_F (red 0 → yellow → green 1), the contacts
-    ``contacts_xy`` ((2, 2) m, e.g. on the mean shape; skipped when None or not finite) as spheres,
-    and a text label with the method and P_F. Sizes in m; drawn half a jaw height above the table
-    plane (``geometry.z``; the optical z axis points down). The first marker deletes earlier ones."""
+                  jaw_thickness: float = 0.004, jaw_height: float = DEFAULT_JAW_HEIGHT,
+                  contacts_xy: np.ndarray | None = None, grasp_height: float | None = None) -> Any:
+    """RViz ``visualization_msgs/MarkerArray`` (rclpy) of a planned grasp: two jaw plates (CUBE,
+    ``jaw_thickness`` along the closing direction, ``jaw_width`` across, ``jaw_height`` along the
+    approach) and the closing arrow jaw1 → jaw2, coloured by P_F (red 0 → yellow → green 1), the
+    contacts ``contacts_xy`` ((2, 2) grid m, e.g. on the mean shape; skipped when None or not finite)
+    as spheres, and a text label with the method and P_F. Sizes in m. Everything is drawn in the
+    table plane of ``geometry`` at ``grasp_height`` above the table (default: half a jaw height),
+    oriented like the ``GraspPlan`` poses (:func:`grasp_frame`). The first marker deletes earlier ones."""
     f = RclpyFactory()
-    z = float(geometry.z) - jaw_height / 2.0
-    axis = np.asarray(result.axis, dtype=np.float64)
+    h = float(jaw_height) / 2.0 if grasp_height is None else float(grasp_height)
+    rot = grasp_frame(geometry, result.axis)
 
     def color(r: float, g: float, b: float, a: float = 0.9) -> Any:
         return f.new('std_msgs/msg/ColorRGBA', r=r, g=g, b=b, a=a)
@@ -133,28 +218,26 @@ def grasp_markers(result: Any, header: Any, geometry: GridGeometry, jaw_width: f
         return f.new('visualization_msgs/msg/Marker', header=header, ns='grasp', id=mid, type=mtype,
                      action=0, **fields)
 
+    def vec(x: float, y: float, z: float) -> Any:
+        return f.new('geometry_msgs/msg/Vector3', x=float(x), y=float(y), z=float(z))
+
     clear = f.new('visualization_msgs/msg/Marker', header=header, ns='grasp', id=0, action=3)
     markers = [clear]
     p_f = float(np.clip(np.nan_to_num(float(result.p_f)), 0.0, 1.0))
     pf_rgb = (min(1.0, 2.0 * (1.0 - p_f)), min(1.0, 2.0 * p_f), 0.1)
     if bool(result.success):
-        for mid, jaw in ((1, result.jaw1), (2, result.jaw2)):
-            pose = _pose_stamped(f, header, jaw, z, axis).pose
-            markers.append(marker(mid, 1, pose=pose, color=color(*pf_rgb),
-                                  scale=f.new('geometry_msgs/msg/Vector3', x=float(jaw_thickness),
-                                              y=float(jaw_width), z=float(jaw_height))))
-        points = [f.new('geometry_msgs/msg/Point', x=float(p[0]), y=float(p[1]), z=z)
-                  for p in (np.asarray(result.jaw1, dtype=np.float64), np.asarray(result.jaw2, dtype=np.float64))]
-        markers.append(marker(3, 0, points=points, color=color(*pf_rgb),
-                              scale=f.new('geometry_msgs/msg/Vector3', x=0.002, y=0.005, z=0.006)))
+        jaws = [_on_plane(geometry, jaw, h) for jaw in (result.jaw1, result.jaw2)]
+        for mid, jaw in ((1, jaws[0]), (2, jaws[1])):
+            markers.append(marker(mid, 1, pose=_pose(f, jaw, rot), color=color(*pf_rgb),
+                                  scale=vec(jaw_thickness, jaw_width, jaw_height)))
+        markers.append(marker(3, 0, points=[_point(f, p) for p in jaws], color=color(*pf_rgb),
+                              scale=vec(0.002, 0.005, 0.006)))
         if contacts_xy is not None:
             for mid, c in enumerate(np.asarray(contacts_xy, dtype=np.float64).reshape(-1, 2), start=5):
                 if np.all(np.isfinite(c)):
-                    pose = _pose_stamped(f, header, c, z, axis).pose
-                    markers.append(marker(mid, 2, pose=pose, color=color(1.0, 1.0, 1.0),
-                                          scale=f.new('geometry_msgs/msg/Vector3', x=0.004, y=0.004, z=0.004)))
-        centre = _pose_stamped(f, header, result.center, z - jaw_height, axis).pose
-        markers.append(marker(4, 9, pose=centre, color=color(1.0, 1.0, 1.0),
-                              scale=f.new('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=0.01),
+                    markers.append(marker(mid, 2, pose=_pose(f, _on_plane(geometry, c, h), rot),
+                                          color=color(1.0, 1.0, 1.0), scale=vec(0.004, 0.004, 0.004)))
+        label = _on_plane(geometry, result.center, h + jaw_height)
+        markers.append(marker(4, 9, pose=_pose(f, label, rot), color=color(1.0, 1.0, 1.0), scale=vec(0.0, 0.0, 0.01),
                               text=f'{result.method}: P_F = {float(result.p_f):.2f}'))
     return f.new('visualization_msgs/msg/MarkerArray', markers=markers)

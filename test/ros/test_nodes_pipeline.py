@@ -76,10 +76,16 @@ def _xy(pose) -> np.ndarray:
     return np.array([pose.pose.position.x, pose.pose.position.y])
 
 
+def _xyz(pose) -> np.ndarray:
+    return np.array([pose.pose.position.x, pose.pose.position.y, pose.pose.position.z])
+
+
 def _contacts_on_mean(model_msg, plan) -> contacts.Contacts:
     posterior = messages.gpis_model_to_posterior(model_msg)
     bank = contacts.SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
-    return contacts.find_contacts(bank, _xy(plan.jaw1), _xy(plan.jaw2), contacts.GripperParams()), posterior
+    g = posterior.geometry  # jaw poses are camera-frame points: back into grid coordinates
+    jaw1, jaw2 = (g.from_sensor(_xyz(p))[0] for p in (plan.jaw1, plan.jaw2))
+    return contacts.find_contacts(bank, jaw1, jaw2, contacts.GripperParams()), posterior
 
 
 @pytest.mark.parametrize('bag', BAGS, ids=[b.stem for b in BAGS])
@@ -89,13 +95,17 @@ def test_bag_to_grasp(bag: Path):
         plan = loop.plan()
         assert plan.success, plan.message
         assert plan.jaw1.header.frame_id == 'camera_rgb_optical_frame'
-        width = np.linalg.norm(_xy(plan.jaw2) - _xy(plan.jaw1))
-        assert width == pytest.approx(plan.width, abs=1e-9)
-        assert 0 < plan.width <= MAX_OPENING + 1e-9
+        separation = np.linalg.norm(_xyz(plan.jaw2) - _xyz(plan.jaw1))
+        assert separation == pytest.approx(plan.jaw_separation, abs=1e-9)
+        assert 0 < plan.width <= plan.jaw_separation <= MAX_OPENING + 1e-9  # width: distance of the contacts
         assert 0.0 <= plan.probability_force_closure <= 1.0
-        # Poses lie in the table plane of the camera frame (the optical z axis points at the table).
+        # Poses lie grasp_height above the (fitted) table plane of the GPIS grid, in the camera frame (default
+        # grasp height: half a 2 cm jaw pad, the object height being unknown to the planner).
         model = loop.models[-1]
-        assert plan.grasp_pose.pose.position.z == pytest.approx(model.info.origin.position.z, abs=1e-6)
+        geometry = messages.gpis_model_to_posterior(model).geometry
+        assert plan.grasp_height == pytest.approx(0.01)
+        for pose in (plan.jaw1, plan.jaw2, plan.grasp_pose):
+            assert geometry.from_sensor(_xyz(pose))[1] == pytest.approx(0.01, abs=1e-9)
         # The jaws close onto the object's boundary: contacts on the mean shape lie within two
         # cells of its zero level set.
         con, posterior = _contacts_on_mean(model, plan)

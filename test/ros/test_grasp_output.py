@@ -1,0 +1,150 @@
+"""3D grasp output (issue 12, item 6): jaw poses in the table plane at grasp_height, grasp orientation,
+contact points on the mean shape and the opening width, for top-down and tilted grids."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from gpis_grasp_interfaces.srv import GraspPlan
+from gpis_grasp_ros.core.grid import GridGeometry, quaternion_to_rotation
+from gpis_grasp_ros.data import messages as cv
+from gpis_grasp_ros.ros import conversions as rcv
+
+STAMP = 1_432_598_400_123_456_789
+
+
+def _rx(deg: float) -> np.ndarray:
+    t = np.radians(deg)
+    return np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+
+
+def _rz(deg: float) -> np.ndarray:
+    t = np.radians(deg)
+    return np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])
+
+
+def _geometry(tilt_deg: float, yaw_deg: float = 0.0, z: float = 0.6) -> GridGeometry:
+    """A 30 x 30 grid of 4 mm cells in a table plane seen at ``tilt_deg`` (grid axes = columns of R)."""
+    r = _rz(yaw_deg) @ _rx(tilt_deg)
+    return GridGeometry(-0.04, -0.05, 0.004, 30, 30, z, 'cam', tuple(r.T.ravel()))
+
+
+def _result(jaw1, jaw2, success=True) -> SimpleNamespace:
+    jaw1, jaw2 = np.asarray(jaw1, float), np.asarray(jaw2, float)
+    d = jaw2 - jaw1
+    return SimpleNamespace(method='gp-gpis-opt', success=success, message='ok', jaw1=jaw1, jaw2=jaw2,
+                           center=(jaw1 + jaw2) / 2, axis=d / np.linalg.norm(d), width=float(np.linalg.norm(d)),
+                           q_mean=0.2, p_f=0.8, p_f_std_error=0.01, objective=0.7, planning_time=0.5, iterations=3)
+
+
+def _xyz(msg) -> np.ndarray:
+    p = msg.pose.position if hasattr(msg, 'pose') else msg.point
+    return np.array([p.x, p.y, p.z])
+
+
+def _rotation(pose_stamped) -> np.ndarray:
+    q = pose_stamped.pose.orientation
+    return quaternion_to_rotation(np.array([q.x, q.y, q.z, q.w]))
+
+
+def _plane(geometry: GridGeometry) -> tuple[np.ndarray, float]:
+    """Unit normal (towards the camera) and offset of the table plane n.p = d, from three grid corners
+    mapped to the sensor frame (independent of GridGeometry.table_normal)."""
+    a, b, c = (geometry.to_sensor(np.array(p), 0.0) for p in ([0.0, 0.0], [0.1, 0.0], [0.0, 0.1]))
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    if n @ -a < 0:  # the camera (origin) is on the positive side
+        n = -n
+    return n, float(n @ a)
+
+
+@pytest.mark.parametrize('tilt', [0.0, 13.0, 30.0, 50.0, 60.0])
+def test_jaws_lie_on_the_plane_offset_by_grasp_height(tilt):
+    rng = np.random.default_rng(int(tilt))
+    hdr = cv.header(rcv.RclpyFactory(), STAMP, 'cam')
+    for _ in range(25):
+        geom = _geometry(tilt, yaw_deg=float(rng.uniform(-180, 180)), z=float(rng.uniform(0.4, 1.2)))
+        jaw1, jaw2 = rng.uniform(-0.04, 0.07, size=(2, 2))
+        contacts = np.stack([jaw1 + 0.2 * (jaw2 - jaw1), jaw1 + 0.7 * (jaw2 - jaw1)])
+        h = float(rng.uniform(0.0, 0.05))
+        result = _result(jaw1, jaw2)
+        resp = rcv.fill_grasp_plan_response(GraspPlan.Response(), result, hdr, geometry=geom, grasp_height=h,
+                                            contacts_xy=contacts)
+        n, d = _plane(geom)
+        points = {name: _xyz(getattr(resp, name)) for name in ('jaw1', 'jaw2', 'grasp_pose', 'contact1', 'contact2')}
+        for name, p in points.items():
+            assert n @ p - d == pytest.approx(h, abs=1e-9), name
+        np.testing.assert_allclose(points['grasp_pose'], (points['jaw1'] + points['jaw2']) / 2, atol=1e-12)
+        closing = (points['jaw2'] - points['jaw1']) / np.linalg.norm(points['jaw2'] - points['jaw1'])
+        for pose in (resp.jaw1, resp.jaw2, resp.grasp_pose):
+            r = _rotation(pose)
+            np.testing.assert_allclose(r[:, 2], -n, atol=1e-9)  # approach: towards the table
+            np.testing.assert_allclose(r[:, 0], closing, atol=1e-9)  # closing direction jaw1 -> jaw2
+            assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-9)
+        assert resp.width == pytest.approx(0.5 * result.width, abs=1e-9)
+        assert resp.width == pytest.approx(np.linalg.norm(points['contact2'] - points['contact1']), abs=1e-12)
+        assert resp.jaw_separation == pytest.approx(np.linalg.norm(points['jaw2'] - points['jaw1']), abs=1e-12)
+        assert resp.grasp_height == h and resp.contact1.header.frame_id == 'cam'
+        # back into the grid: the planned (x, y)
+        xy, height = geom.from_sensor(points['jaw1'])
+        np.testing.assert_allclose(xy, jaw1, atol=1e-12)
+        assert height == pytest.approx(h, abs=1e-12)
+
+
+def test_tilted_jaw_depths_differ_like_the_table():
+    """At 50 degrees tilt two jaws 6 cm apart along the tilt direction sit at different depths."""
+    geom = _geometry(50.0)
+    hdr = cv.header(rcv.RclpyFactory(), STAMP, 'cam')
+    resp = rcv.fill_grasp_plan_response(GraspPlan.Response(), _result([0.0, -0.03], [0.0, 0.03]), hdr,
+                                        geometry=geom, grasp_height=0.01, contacts_xy=[[0.0, -0.02], [0.0, 0.02]])
+    dz = resp.jaw2.pose.position.z - resp.jaw1.pose.position.z  # grid +y runs towards the camera here
+    assert dz == pytest.approx(-0.06 * np.sin(np.radians(50.0)), abs=1e-12)
+    assert resp.width == pytest.approx(0.04, abs=1e-12) and resp.jaw_separation == pytest.approx(0.06, abs=1e-12)
+
+
+def test_top_down_keeps_its_meaning():
+    """Identity grid: jaws at depth z - grasp_height, yaw-only orientation (x onto the closing direction)."""
+    hdr = cv.header(rcv.RclpyFactory(), STAMP, 'cam')
+    result = _result([0.0, 0.0], [0.0, 0.03])
+    geom = GridGeometry(0, 0, 0.001, 10, 10, 0.7, 'cam')
+    resp = rcv.fill_grasp_plan_response(GraspPlan.Response(), result, hdr, geometry=geom, grasp_height=0.01,
+                                        contacts_xy=[[0.0, 0.005], [0.0, 0.025]])
+    assert resp.jaw2.pose.position.y == pytest.approx(0.03) and resp.grasp_pose.pose.position.z == pytest.approx(0.69)
+    q = resp.grasp_pose.pose.orientation  # x axis rotated onto +y: 90 degrees about the optical axis
+    assert (q.x, q.y, q.z, q.w) == pytest.approx((0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)))
+    assert resp.width == pytest.approx(0.02) and resp.jaw_separation == pytest.approx(0.03)
+    # no geometry: the legacy top-down call at depth z, grasp height 0
+    legacy = rcv.fill_grasp_plan_response(GraspPlan.Response(), result, hdr, z=0.7)
+    assert legacy.grasp_pose.pose.position.z == 0.7 and legacy.grasp_pose.pose.orientation.z == pytest.approx(q.z)
+
+
+def test_no_contact_on_the_mean_shape_is_reported():
+    hdr = cv.header(rcv.RclpyFactory(), STAMP, 'cam')
+    resp = rcv.fill_grasp_plan_response(GraspPlan.Response(), _result([0.0, 0.0], [0.03, 0.0]), hdr,
+                                        geometry=_geometry(30.0), grasp_height=0.01, contacts_xy=None)
+    assert resp.success and np.isnan(resp.width) and 'no contact on the mean shape' in resp.message
+    assert resp.jaw_separation == pytest.approx(0.03)
+    failed = rcv.fill_grasp_plan_response(GraspPlan.Response(), _result([np.nan, 0.0], [0.03, 0.0], success=False),
+                                          hdr, geometry=_geometry(30.0), grasp_height=0.01)
+    assert not failed.success and _xyz(failed.jaw1).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_markers_are_drawn_at_the_jaw_poses():
+    geom = _geometry(50.0, yaw_deg=20.0)
+    hdr = cv.header(rcv.RclpyFactory(), STAMP, 'cam')
+    result = _result([0.0, 0.01], [0.04, 0.02])
+    resp = rcv.fill_grasp_plan_response(GraspPlan.Response(), result, hdr, geometry=geom, grasp_height=0.012,
+                                        contacts_xy=[[0.01, 0.0125], [0.03, 0.0175]])
+    markers = rcv.grasp_markers(result, hdr, geom, jaw_width=0.02, contacts_xy=[[0.01, 0.0125], [0.03, 0.0175]],
+                                grasp_height=0.012).markers
+    by_id = {m.id: m for m in markers if m.action == 0}
+    for mid, jaw in ((1, resp.jaw1), (2, resp.jaw2)):
+        np.testing.assert_allclose(_xyz(by_id[mid]), _xyz(jaw), atol=1e-12)
+        assert by_id[mid].pose.orientation == jaw.pose.orientation
+    arrow = by_id[3].points
+    np.testing.assert_allclose([arrow[0].x, arrow[0].y, arrow[0].z], _xyz(resp.jaw1), atol=1e-12)
+    np.testing.assert_allclose(_xyz(by_id[5]), _xyz(resp.contact1), atol=1e-12)
+    np.testing.assert_allclose(_xyz(by_id[6]), _xyz(resp.contact2), atol=1e-12)
