@@ -73,7 +73,7 @@ import numpy as np
 
 EXECUTORS = ('serial', 'process', 'dask')
 #: Columns that may differ between executors and runs (wall-clock times, worker identity, memory).
-TIMING_COLUMNS = ('task_time_s', 'planning_time_s', 'evaluation_time_s', 'gpis_time_s', 'gpis_cached',
+TIMING_COLUMNS = ('task_time_s', 'task_cpu_s', 'planning_time_s', 'evaluation_time_s', 'gpis_time_s', 'gpis_cached',
                   'worker', 'max_rss_mb')
 DEFAULT_METHODS = ('gp-gpis-opt', 'gp-m', 'gp-p')
 BLAS_ENV = ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS', 'VECLIB_MAXIMUM_THREADS',
@@ -227,7 +227,7 @@ def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
     """Run one task (pure: the same task gives the same row apart from :data:`TIMING_COLUMNS`)."""
     from gpis_grasp_ros.core.planners import execute_grasp_trials, plan
 
-    t_task = time.perf_counter()
+    t_task, cpu_task = time.perf_counter(), time.process_time()
     if attempt <= int(task.fail_first_attempts):
         raise InjectedFailure(f'fault drill: attempt {attempt} of task {task.task_id} fails on purpose')
     e = task.entry
@@ -273,7 +273,7 @@ def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
     row.update({'gpis_time_s': 0.0 if cached else model.gpis_time_s, 'gpis_cached': bool(cached),
                 'worker': f'{os.uname().nodename}:{os.getpid()}',
                 'max_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-                'task_time_s': time.perf_counter() - t_task})
+                'task_time_s': time.perf_counter() - t_task, 'task_cpu_s': time.process_time() - cpu_task})
     return row
 
 
@@ -664,13 +664,28 @@ def summary_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ('material
 
 
 # =========================================================================== throughput
+def _noop(i: int) -> int:
+    return i
+
+
+def dask_round_trip_s(client: Any, n: int = 200) -> float:
+    """Dask's own cost per task (s): wall time of ``n`` no-op tasks submitted at once, divided by ``n``."""
+    t0 = time.perf_counter()
+    futures = client.map(_noop, range(n), pure=False)
+    client.gather(futures)
+    return (time.perf_counter() - t0) / n
+
+
 def throughput(tasks: Sequence[Task], out: Path, configs: Sequence[tuple[str, int]], progress: bool = False,
                affinity: str = 'object') -> list[dict[str, Any]]:
-    """Wall time, tasks/s and memory of the same task list per (executor, workers), each from scratch.
+    """Wall time, tasks/s, CPU time and memory of the same task list per (executor, workers), from scratch.
 
     Every configuration starts with fresh worker processes (cold GPIS caches) and runs all tasks; in
-    the serial configuration this process's cache is cleared first. Dask's overhead per task is
-    (wall × workers − Σ task time) / tasks, the time a worker slot spends not computing a task.
+    the serial configuration this process's cache is cleared first. ``wall_s`` is the evaluation's wall
+    time (process pools start inside it; a Dask LocalCluster's start-up is ``startup_s``, apart).
+    ``idle_per_task_s`` = (wall × workers − Σ task wall time) / tasks: time a worker slot spends not
+    computing (scheduling, transfers, start-up, load imbalance at the end). ``cpu_s`` sums the tasks'
+    CPU time (``time.process_time``), which other processes on a shared machine do not inflate.
     """
     out.mkdir(parents=True, exist_ok=True)
     reference: list[dict[str, Any]] | None = None
@@ -678,8 +693,18 @@ def throughput(tasks: Sequence[Task], out: Path, configs: Sequence[tuple[str, in
     for executor, workers in configs:
         _object_model_cached.cache_clear()
         load_before = os.getloadavg()[0]
-        run = run_evaluation(tasks, out / f'{executor}-{workers}', executor, workers, fresh=True, progress=progress,
-                             affinity=affinity)
+        startup, round_trip = 0.0, float('nan')
+        target = out / f'{executor}-{workers}'
+        if executor == 'dask':
+            t0 = time.perf_counter()
+            with dask_client('local', workers) as client:
+                client.wait_for_workers(workers)
+                startup = time.perf_counter() - t0
+                round_trip = dask_round_trip_s(client)
+                run = run_evaluation(tasks, target, executor, workers, fresh=True, progress=progress,
+                                     affinity=affinity, client=client)
+        else:
+            run = run_evaluation(tasks, target, executor, workers, fresh=True, progress=progress, affinity=affinity)
         if run.failures:
             raise RuntimeError(f'{executor} x {workers}: {len(run.failures)} tasks failed; see {run.out}')
         same = reference is None or comparable(run.rows) == reference
@@ -690,7 +715,9 @@ def throughput(tasks: Sequence[Task], out: Path, configs: Sequence[tuple[str, in
             rss[r['worker']] = max(rss.get(r['worker'], 0.0), r['max_rss_mb'])
         stats.append({'executor': executor, 'workers': workers, 'tasks': len(run.rows), 'wall_s': run.wall_time_s,
                       'tasks_per_s': len(run.rows) / run.wall_time_s, 'busy_s': busy,
-                      'overhead_per_task_s': (run.wall_time_s * workers - busy) / len(run.rows),
+                      'cpu_s': sum(r.get('task_cpu_s', float('nan')) for r in run.rows),
+                      'idle_per_task_s': (run.wall_time_s * workers - busy) / len(run.rows),
+                      'startup_s': startup, 'dask_round_trip_s': round_trip,
                       'max_rss_mb_per_worker': max(rss.values()), 'identical_to_first': same,
                       'load_avg_1min': 0.5 * (load_before + os.getloadavg()[0])})
     base = next((s['tasks_per_s'] for s in stats if s['executor'] == 'serial'), stats[0]['tasks_per_s'])
@@ -700,13 +727,16 @@ def throughput(tasks: Sequence[Task], out: Path, configs: Sequence[tuple[str, in
 
 
 def throughput_markdown(stats: Sequence[dict[str, Any]]) -> str:
-    lines = ['| executor | workers | tasks | wall (s) | tasks/s | speed-up vs serial | idle+overhead per task (s) | '
-             'max RSS per worker (MB) | rows identical | machine load (1 min) |', '|---' * 10 + '|']
+    lines = ['| executor | workers | tasks | wall (s) | tasks/s | speed-up vs serial | task CPU (s) | '
+             'idle per task (s) | start-up (s) | Dask no-op round trip (ms) | max RSS per worker (MB) | '
+             'rows identical | machine load (1 min) |', '|---' * 13 + '|']
     for s in stats:
+        rt = s['dask_round_trip_s']
         lines.append(f"| {s['executor']} | {s['workers']} | {s['tasks']} | {s['wall_s']:.1f} | "
-                     f"{s['tasks_per_s']:.3f} | {s['speedup_vs_serial']:.2f} | {s['overhead_per_task_s']:.3f} | "
-                     f"{s['max_rss_mb_per_worker']:.0f} | {'yes' if s['identical_to_first'] else 'NO'} | "
-                     f"{s['load_avg_1min']:.1f} |")
+                     f"{s['tasks_per_s']:.3f} | {s['speedup_vs_serial']:.2f} | {s['cpu_s']:.1f} | "
+                     f"{s['idle_per_task_s']:.3f} | {s['startup_s']:.1f} | "
+                     f"{'' if math.isnan(rt) else f'{rt * 1e3:.1f}'} | {s['max_rss_mb_per_worker']:.0f} | "
+                     f"{'yes' if s['identical_to_first'] else 'NO'} | {s['load_avg_1min']:.1f} |")
     return '\n'.join(lines)
 
 
@@ -733,10 +763,10 @@ def throughput_report(stats: Sequence[dict[str, Any]], n_tasks: int, n_objects: 
     task_s = (serial[0] if serial else ref)['busy_s'] / n_tasks
     per_object = n_tasks / max(1, n_objects)
     total = int(round(target_objects * per_object))
-    return (throughput_markdown(stats) + f'\n\nMean task time {task_s:.3f} s (serial); idle+overhead per task '
-            f"{ref['overhead_per_task_s']:.3f} s ({ref['executor']}, {ref['workers']} workers). Projection for "
+    return (throughput_markdown(stats) + f'\n\nMean task time {task_s:.3f} s (serial); idle per task '
+            f"{ref['idle_per_task_s']:.3f} s ({ref['executor']}, {ref['workers']} workers). Projection for "
             f'{target_objects} objects x {per_object:g} tasks per object = {total} tasks:\n\n'
-            + projection_markdown(task_s, max(0.0, ref['overhead_per_task_s']), total))
+            + projection_markdown(task_s, max(0.0, ref['idle_per_task_s']), total))
 
 
 # =========================================================================== CLI
