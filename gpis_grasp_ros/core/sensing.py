@@ -102,6 +102,8 @@ from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 TARGET_MODES = ('largest', 'nearest_center', 'pixel', 'table')
 MISSING_HEIGHT_WINDOW_M = 0.02
+MISSING_BRIDGE_M = 0.05  # a hole region this small joins the objects it touches (m)
+MISSING_ATTACH_M = 0.01  # holes belong to an object within this distance of its seen parts (m)
 
 
 @dataclass(frozen=True)
@@ -427,9 +429,53 @@ def _missing_height(height: np.ndarray, above: np.ndarray, footprint_m: float,
     return np.where(count >= 3, total / np.maximum(count, 1.0), 0.0).astype(np.float64)
 
 
-def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, inlier_xy: np.ndarray,
-                      footprint_m: float) -> tuple[_Raster, np.ndarray]:
+def _nearest_label(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For every raster cell: the label of the nearest labelled cell and the distance to it (cells)."""
+    src = (labels == 0).astype(np.uint8)
+    dist, nearest = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    cells = np.argwhere(src == 0)  # the labelled cells, in the (row-major) order of OpenCV's pixel labels
+    near = cells[np.clip(nearest - 1, 0, len(cells) - 1)]
+    return labels[near[..., 0], near[..., 1]], dist
+
+
+def _merge_across_small_holes(labels: np.ndarray, lab_miss: np.ndarray, n_miss: int, n_pos: int,
+                              touching: np.ndarray, res: float) -> np.ndarray:
+    """Objects touching the same small hole region (extent <= ``MISSING_BRIDGE_M``) are one object
+    (e.g. a specular band across a marker); large hole regions (drop-outs along the table) join nothing."""
+    parent = np.arange(labels.max() + 1)
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    grown = cv2.dilate((labels > 0).astype(np.uint8), np.ones((3, 3), np.uint8))
+    for c in np.nonzero(touching)[0]:
+        if c == 0:
+            continue
+        rows, cols = np.nonzero(lab_miss == c)
+        if math.hypot(np.ptp(rows), np.ptp(cols)) * res > MISSING_BRIDGE_M:
+            continue
+        ring = cv2.dilate((lab_miss == c).astype(np.uint8), np.ones((3, 3), np.uint8)) & grown
+        near = np.unique(labels[(ring > 0) & (labels > 0) & (labels <= n_pos)])
+        for other in near[1:]:
+            parent[find(int(other))] = find(int(near[0]))
+    roots = np.array([find(i) for i in range(parent.size)])
+    return roots[labels].astype(np.int32)
+
+
+def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.ndarray, inlier_xy: np.ndarray,
+                      footprint_m: float, attach_m: float) -> tuple[_Raster, np.ndarray]:
     """Rasterise the evidence pixels' feet over the table's extent and label connected components.
+
+    Components are built from the positive evidence (depth or colour). Holes (missing pixels) are
+    grouped separately: a hole region touching an object joins it only within ``attach_m`` of its
+    positive evidence (a hole is object where it is part of a seen object, e.g. a specular patch, not
+    a path along the table's drop-outs to the next object), entirely if it touches only that object
+    and is at most 2 ``MISSING_BRIDGE_M`` across; a small hole region (``MISSING_BRIDGE_M``) touching
+    several objects joins them; a hole region touching no object is an object of its own (entirely
+    specular / transparent).
 
     Returns the raster and the per-pixel labels (0 = not evidence or off the table)."""
     lo, hi = inlier_xy.min(axis=0), inlier_xy.max(axis=0)
@@ -444,13 +490,36 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, inlier_xy: np.n
     cv2.fillConvexPoly(extent, np.round(hull).astype(np.int32), 1)
     extent = cv2.erode(extent, np.ones((5, 5), np.uint8))  # the rounded hull's rim (2 cells) is not surely table
     ix, iy, ok = raster.cell(foot_xy)
-    on_table = ok & (extent[iy, ix] > 0)
-    use = evidence & on_table
-    marks = np.zeros((ny, nx), np.uint8)
-    marks[iy[use], ix[use]] = 1
-    marks = cv2.morphologyEx(marks, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
-    _, labels = cv2.connectedComponents(marks, connectivity=8)
-    raster.labels = labels.astype(np.int32)
+    use = evidence & ok & (extent[iy, ix] > 0)
+    close = np.ones((3, 3), np.uint8)
+
+    def mark(sel: np.ndarray) -> np.ndarray:
+        m = np.zeros((ny, nx), np.uint8)
+        m[iy[sel], ix[sel]] = 1
+        return cv2.morphologyEx(m, cv2.MORPH_CLOSE, close)
+
+    n_pos, lab_pos = cv2.connectedComponents(mark(use & ~missing), connectivity=8)
+    n_miss, lab_miss = cv2.connectedComponents(mark(use & missing) & (lab_pos == 0).astype(np.uint8), connectivity=8)
+    labels = lab_pos.astype(np.int32)
+    if n_miss > 1:
+        if n_pos > 1:
+            nearest, dist = _nearest_label(lab_pos)
+            touching = np.zeros(n_miss, dtype=bool)
+            touching[np.unique(lab_miss[(dist <= 1.5) & (lab_miss > 0)])] = True
+        else:
+            nearest, dist, touching = np.zeros_like(labels), np.full(labels.shape, np.inf), np.zeros(n_miss, bool)
+        attach = (lab_miss > 0) & touching[lab_miss] & (dist * res <= attach_m)
+        labels[attach] = nearest[attach]
+        for c in np.nonzero(touching)[0]:  # a hole region of one object only (a specular lever): all of it
+            cells = lab_miss == c
+            rows, cols = np.nonzero(cells)
+            owners = np.unique(nearest[cells & (dist <= 1.5)])
+            if owners.size == 1 and math.hypot(np.ptp(rows), np.ptp(cols)) * res <= 2 * MISSING_BRIDGE_M:
+                labels[cells] = owners[0]
+        alone = (lab_miss > 0) & ~touching[lab_miss]
+        labels[alone] = n_pos + lab_miss[alone]
+        labels = _merge_across_small_holes(labels, lab_miss, n_miss, n_pos, touching, res)
+    raster.labels = labels
     px_labels = np.where(use, raster.labels[iy, ix], 0)
     return raster, px_labels
 
@@ -693,7 +762,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         fx_, fy_ = foot_xy[..., 0], foot_xy[..., 1]
         evidence &= (fx_ >= x0) & (fx_ <= x1) & (fy_ >= y0) & (fy_ <= y1)
     inlier_xy = foot_xy[inlier]
-    raster, px_labels = _table_components(foot_xy, evidence, inlier_xy, footprint)
+    raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M)
     target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics)
     target_px = px_labels == target
     target_xy = foot_xy[target_px]
