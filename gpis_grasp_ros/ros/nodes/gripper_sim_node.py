@@ -4,7 +4,10 @@ Subscribes the bag's latched ground truth (``ground_truth/sdf``, ``ground_truth/
 never read by segmentation, GPIS or planner) and serves ``execute_grasp``
 (gpis_grasp_interfaces/ExecuteGrasp): each trial perturbs the jaws with the positioning noise
 sigma_g (section V-B), closes them on the TRUE shape and checks force closure with the same
-Ferrari-Canny code the planner uses.
+Ferrari-Canny code the planner uses. Jaw positions and the centre of mass are camera-frame points;
+they are mapped into the ground-truth grid through the camera frame (``GridGeometry.from_sensor``:
+orthogonal projection onto the true table plane), so grasps planned on a fitted, tilted table frame
+are executed on tilted ground truth (head-camera bags) correctly.
 """
 
 from __future__ import annotations
@@ -101,7 +104,7 @@ class GripperSimNode(GuardedNode):
             self.reject(f'ignoring ground_truth/center_of_mass: {exc}')
             return
         with self._lock:
-            self._com = xyz[:2]
+            self._com = np.asarray(xyz, dtype=np.float64)[:3]  # camera frame; into the truth grid at execution
 
     def _on_execute(self, request: ExecuteGrasp.Request, response: ExecuteGrasp.Response) -> ExecuteGrasp.Response:
         response.success = False
@@ -112,6 +115,9 @@ class GripperSimNode(GuardedNode):
             response.message = ("no ground truth received yet on "
                                 f"'{self.resolve_topic_name('ground_truth/sdf')}'")
             return response
+        # Camera-frame points → the truth grid's (x, y) in its own table plane (the planning grid's table
+        # frame may differ slightly): orthogonal projection along the true table normal.
+        com = None if com is None else geometry.from_sensor(com)[0]
         trials = int(request.trials) or 10
         if trials > MAX_TRIALS:
             response.message = f'trials={trials} is too many (at most {MAX_TRIALS})'
@@ -127,7 +133,7 @@ class GripperSimNode(GuardedNode):
             except ValueError as exc:
                 response.message = str(exc)
                 return response
-            jaws.append(xyz[:2])
+            jaws.append(geometry.from_sensor(np.asarray(xyz, dtype=np.float64)[:3])[0])
         separation = float(np.linalg.norm(jaws[1] - jaws[0]))
         if separation < MIN_JAW_SEPARATION:
             response.message = (f'jaw1 and jaw2 are {separation * 1000:.3g} mm apart: identical jaws are not a grasp '
