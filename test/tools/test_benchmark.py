@@ -114,6 +114,17 @@ def test_output_files(written: Path) -> None:
     assert set(summary['calibration']['overall']) >= {'p_tilde_hard', 'p_tilde_smooth', 'p_f', 'p_true_grid'}
 
 
+def test_convergence_histories(serial: ev.BenchmarkResult, written: Path) -> None:
+    """GP-G's restarts (seed 0) are recorded; with objective histories the convergence plot is written."""
+    for o in serial.objects:
+        assert len(o.convergence) == SMALL.n_initial_grasps
+        for e in o.convergence:
+            if e['history'] is not None:
+                assert e['history'].ndim == 1 and np.all(np.isfinite(e['history']))
+    has = any(e['history'] is not None for o in serial.objects for e in o.convergence)
+    assert (written / 'convergence.png').exists() == has
+
+
 def test_calibration_rows(serial: ev.BenchmarkResult) -> None:
     """Every planned grasp and the requested candidates get three predictions and simulated outcomes."""
     for o in serial.objects:

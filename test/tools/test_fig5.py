@@ -49,3 +49,13 @@ def test_unobserved_nose_is_uncertain_and_the_tail_is_not(tmp_path) -> None:
         return float(sd[row, col])
 
     assert sd_at((6.6, 0.0)) > 3 * sd_at((-7.9, 0.0))
+
+
+def test_contacts_on_unobserved_regions() -> None:
+    pts_cm = np.array([[6.8, 0.0], [-7.9, 0.0], [1.6, -3.5], [2.9, -3.5], [1.6, -7.0]])
+    pts = fig5.plane_to_scene(pts_cm)
+    assert list(fig5.on_uncertain(pts, fig5.pattern_regions('nose'))) == [True, False, False, False, False]
+    assert list(fig5.on_uncertain(pts, fig5.pattern_regions('front_back'))) == [True, True, False, False, False]
+    # Edge pattern: the inner wing is observed, its leading edge and tip are not.
+    assert list(fig5.on_uncertain(pts, fig5.pattern_regions('wing_edges'))) == [False, False, False, True, True]
+    assert list(fig5.on_uncertain(pts, fig5.pattern_regions('wings'))) == [False, False, True, True, True]

@@ -18,10 +18,10 @@ executions on the bag's ground-truth shape
 (:func:`~gpis_grasp_ros.core.planners.execute_grasp_trials`, σ_g = 0.5 planning cell, the
 simulated gripper of ``gripper_sim_node``).
 
-**Candidate choice.** K heuristic candidates (GP-P's generator,
-:func:`~gpis_grasp_ros.core.planners.sample_heuristic_grasps`) plus K random grasps around the
+**Candidate choice.** K/2 heuristic candidates (GP-P's generator,
+:func:`~gpis_grasp_ros.core.planners.sample_heuristic_grasps`) plus K/2 random grasps around the
 object (:func:`random_grasps`; on some objects every heuristic candidate has P_F > 0.9, and a
-calibration study needs the whole range) are screened by P_F on a *screening* sample set; for
+calibration study needs the whole range) are screened by P_F on a *screening* set of 250 samples; for
 each of ``n`` target values evenly spaced in [0, 1] the unused candidate with the nearest
 screening P_F is taken. The predictions use other samples, so the
 choice does not bias them (no winner's curse).
@@ -77,6 +77,8 @@ PREDICTORS: tuple[tuple[str, str], ...] = (
 DIAGNOSTICS: dict[str, str] = {'p_true_grid': 'P_F with the true shape on the planning grid (diagnostic)',
                                'p_f_inflated': 'P_F with σ inflated by the z RMS (diagnostic)'}
 N_BINS = 10
+#: Shape samples of the screening P_F that only places candidates along [0, 1] (s.e. ≤ 0.032).
+SCREEN_SAMPLES = 250
 
 
 # ------------------------------------------------------------------------------------------
@@ -279,10 +281,10 @@ def calibrate_object(posterior: GpisPosterior, true_sdf: np.ndarray, true_geomet
     ctx = PlanningContext(posterior, params)
     streams = [np.random.default_rng(c) for c in np.random.SeedSequence(seed).spawn(8)]
     rng_cand, rng_screen, rng_pred, rng_tilde, rng_smooth, rng_exec, rng_true, rng_inflate = streams
-    j1c, j2c = candidate_pool(ctx, params.n_grasp_samples, rng_cand)
+    j1c, j2c = candidate_pool(ctx, max(n_candidates, params.n_grasp_samples // 2), rng_cand)
     screen_p = np.zeros(0)
     if n_candidates > 0 and j1c.shape[0]:
-        screen = draw_shape_samples(posterior, params.n_shape_samples, rng_screen, rho=ctx.rho)
+        screen = draw_shape_samples(posterior, min(params.n_shape_samples, SCREEN_SAMPLES), rng_screen, rho=ctx.rho)
         screen_p = probability_force_closure(j1c, j2c, screen, ctx.gripper, ctx.sigma_g).p
         pick = spread_by_value(screen_p, n_candidates)
         j1c, j2c, screen_p = j1c[pick], j2c[pick], screen_p[pick]

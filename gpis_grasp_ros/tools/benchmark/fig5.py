@@ -39,7 +39,7 @@ from matplotlib.figure import Figure
 from gpis_grasp_ros.core.contacts import find_contacts
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.sim.objects import CM, mirror_y, rect, rotate, toy_plane
-from gpis_grasp_ros.sim.scene import MaterialRegion, SceneSpec, write_scene_bag
+from gpis_grasp_ros.sim.scene import MaterialRegion, SceneSpec, polygon_signed_distance, write_scene_bag
 from gpis_grasp_ros.tools.benchmark.evaluation import (
     METHOD_BY_KEY,
     BenchmarkResult,
@@ -130,15 +130,35 @@ def part_of(point_cm: np.ndarray) -> str:
     return 'fuselage'
 
 
-def describe_grasp(truth: TrueShape, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Any) -> dict[str, Any]:
-    """Parts under the two contacts (true shape, unperturbed grasp) and the closing line's angle to the fuselage."""
+UNCERTAIN_TOL_M = 0.003  # a contact within 3 mm of an unobserved region counts as on it
+
+
+def on_uncertain(points_m: np.ndarray, regions: Sequence[MaterialRegion], tol: float = UNCERTAIN_TOL_M) -> np.ndarray:
+    """Whether scene points (m) lie on (within ``tol`` of) the pattern's specular regions and not inside an
+    opaque override region (the observed inner wing of the edge pattern)."""
+    pts = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
+    near = np.zeros(pts.shape[0], dtype=bool)
+    for r in regions:
+        d = polygon_signed_distance(pts, np.asarray(r.polygon))
+        if r.kind == 'specular':
+            near |= d < tol
+        else:
+            near &= ~(d < -tol)
+    return near
+
+
+def describe_grasp(truth: TrueShape, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Any,
+                   regions: Sequence[MaterialRegion] = ()) -> dict[str, Any]:
+    """Parts under the two contacts (true shape, unperturbed grasp), the closing line's angle to the
+    fuselage, and how many contacts lie on the pattern's unobserved regions."""
     con = find_contacts(truth.bank, np.asarray(jaw1)[None], np.asarray(jaw2)[None], gripper)
     if not bool(con.valid[0]):
-        return {'parts': ('none', 'none'), 'angle_deg': float('nan')}
+        return {'parts': ('none', 'none'), 'angle_deg': float('nan'), 'on_uncertain': -1}
     c1, c2 = scene_to_plane(con.c1[0]), scene_to_plane(con.c2[0])
     d = c2 - c1
     angle = math.degrees(math.atan2(abs(d[1]), abs(d[0])))  # 0 = along the fuselage, 90 = across
-    return {'parts': tuple(sorted((part_of(c1), part_of(c2)))), 'angle_deg': angle}
+    n_unc = int(np.count_nonzero(on_uncertain(np.stack([con.c1[0], con.c2[0]]), regions)))
+    return {'parts': tuple(sorted((part_of(c1), part_of(c2)))), 'angle_deg': angle, 'on_uncertain': n_unc}
 
 
 def agrees(parts: Sequence[str], expected: Sequence[frozenset[str]]) -> bool:
@@ -161,10 +181,12 @@ def run_fig5(out_dir: str | Path, settings: BenchmarkSettings, workers: int = 1,
         seeds = []
         for r in (r for r in o.rows if r['method'] == 'gp-g'):
             d = describe_grasp(truth, np.array([r['jaw1_x'], r['jaw1_y']]), np.array([r['jaw2_x'], r['jaw2_y']]),
-                               gripper) if r['success'] else {'parts': ('none', 'none'), 'angle_deg': float('nan')}
+                               gripper, pattern_regions(key)) if r['success'] else {
+                'parts': ('none', 'none'), 'angle_deg': float('nan'), 'on_uncertain': -1}
             seeds.append(d | {'seed': r['seed'], 'agrees': agrees(d['parts'], expected)})
         summary.append({'pattern': key, 'title': title, 'paper': paper, 'object': o.object, 'seeds': seeds,
-                        'agree_seeds': sum(1 for d in seeds if d['agrees'])})
+                        'agree_seeds': sum(1 for d in seeds if d['agrees']),
+                        'avoid_seeds': sum(1 for d in seeds if d['on_uncertain'] == 0)})
     return result, summary
 
 
@@ -176,18 +198,21 @@ def fig5_markdown(result: BenchmarkResult, summary: Sequence[dict[str, Any]]) ->
              f'{s.seeds} seed(s); P_F on S = {s.shape_samples} shape samples (mean over seeds); simulated executions '
              f'on the true shape ({s.trials} per seed, summed). "Contacts" are the plane parts under the GP-G grasp\'s '
              'two contacts on the true shape (seed 0), "angle" its closing line\'s angle to the fuselage (0° = '
-             'along, 90° = across).', '']
-    header = ['pattern', 'paper: grasp on', 'GP-G contacts (seed 0)', 'angle', 'seeds as the paper', 'GP-G P_F',
-              'GP-G sim', 'GP-P P_F', 'GP-P sim', 'GP-M P_F']
+             'along, 90° = across); "off the unobserved parts": seeds whose two contacts are both more than 3 mm '
+             'from the pattern\'s unobserved regions. GP-G\'s opening is w_g = 9 cm: a nose-to-tail grasp (15 cm) '
+             'or a tip-to-tip grasp (14 cm) is out of reach.', '']
+    header = ['pattern', 'paper: grasp on', 'GP-G contacts (seed 0)', 'angle', 'seeds as the paper',
+              'seeds off the unobserved parts', 'GP-G P_F', 'GP-G sim', 'GP-P P_F', 'GP-P sim', 'GP-M P_F']
     body = []
     for entry, o in zip(summary, result.objects, strict=True):
         d0 = entry['seeds'][0] if entry['seeds'] else {'parts': ('none', 'none'), 'angle_deg': float('nan')}
         g, p, m = (cells[(o.object, k)] for k in FIG5_METHODS)
         body.append([entry['title'], entry['paper'], ' – '.join(d0['parts']), f'{d0["angle_deg"]:.0f}°',
-                     f'{entry["agree_seeds"]}/{len(entry["seeds"])}', _f2(g.p_f),
+                     f'{entry["agree_seeds"]}/{len(entry["seeds"])}',
+                     f'{entry["avoid_seeds"]}/{len(entry["seeds"])}', _f2(g.p_f),
                      _rate(g.sim_successes, g.sim_trials), _f2(p.p_f), _rate(p.sim_successes, p.sim_trials),
                      _f2(m.p_f)])
-    lines += _table(header, body, 'llllrrrrrr')
+    lines += _table(header, body, 'llllrrrrrrr')
     lines += ['', 'All seeds (GP-G): ' + '; '.join(
         f'{e["pattern"]}: ' + ', '.join(f'{" – ".join(d["parts"])} ({d["angle_deg"]:.0f}°)' for d in e['seeds'])
         for e in summary), '']

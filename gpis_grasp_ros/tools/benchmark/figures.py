@@ -212,7 +212,7 @@ def convergence_figure(result: BenchmarkResult) -> Figure | None:
         return None
     cols = min(4, len(objs))
     rows = math.ceil(len(objs) / cols)
-    fig = Figure(figsize=(3.3 * cols, 2.7 * rows))
+    fig = Figure(figsize=(max(3.3 * cols, 7.0), 2.7 * rows + 0.5))
     for i, o in enumerate(objs):
         ax = fig.add_subplot(rows, cols, i + 1)
         n_conv = 0
@@ -228,9 +228,9 @@ def convergence_figure(result: BenchmarkResult) -> Figure | None:
         ax.set_ylabel('objective (eq. 6)', fontsize=8)
         ax.tick_params(labelsize=7)
         ax.grid(color='0.9')
-    fig.suptitle('GP-G (seed 0): objective vs SCP iteration per restart; green feasible, red infeasible, '
-                 'dotted = not converged', fontsize=9)
-    fig.tight_layout(rect=(0, 0, 1, 0.94))
+    fig.suptitle('GP-G (seed 0): objective vs SCP iteration per restart\n'
+                 'green: feasible, red: infeasible; solid: converged, dotted: not converged', fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 0.9))
     return fig
 
 

@@ -49,14 +49,15 @@ def aggregate(rows: Iterable[dict[str, Any]]) -> dict[tuple[str, str], Cell]:
         p = np.array([r['p_f'] for r in rs], dtype=np.float64)
         qn = np.array([r['q_n'] for r in rs], dtype=np.float64)
         qf = np.array([r['q_f_mean'] for r in rs], dtype=np.float64)
-        t = np.array([r['planning_time_s'] for r in rs], dtype=np.float64)
+        # Times of plans that produced a grasp (a failed plan's time says nothing about the method).
+        t = np.array([r['planning_time_s'] for r in rs if r['success']] or [np.nan], dtype=np.float64)
         out[key] = Cell(p_f=float(p.mean()), p_f_min=float(p.min()), p_f_max=float(p.max()),
                         p_f_se=float(np.mean([r['p_f_std_error'] for r in rs])),
                         q_f_mean=float(np.nanmean(qf)) if np.isfinite(qf).any() else float('nan'),
                         q_n=float(np.mean(np.nan_to_num(qn, nan=0.0))), q_n_fc=int(np.count_nonzero(qn > 0)),
                         sim_successes=int(sum(r['sim_successes'] for r in rs)),
                         sim_trials=int(sum(r['sim_trials'] for r in rs)),
-                        time_worst=float(t.max()), time_median=float(np.median(t)), n_seeds=len(rs),
+                        time_worst=float(np.max(t)), time_median=float(np.median(t)), n_seeds=len(rs),
                         failures=sum(1 for r in rs if not r['success']))
     return out
 
@@ -77,10 +78,11 @@ def goal_figures(result: BenchmarkResult) -> dict[str, Any]:
     if {'gp-g', 'gp-p'} <= have:
         within = [o for o in objs if cells[(o, 'gp-g')].p_f >= cells[(o, 'gp-p')].p_f - 0.05]
         out['gp_g_within_0.05_of_gp_p'] = [by[o].letter for o in within]
+        timed = [o for o in objs if all(math.isfinite(cells[(o, k)].time_worst) for k in ('gp-p', 'gp-g'))]
         worst = {by[o].letter: cells[(o, 'gp-p')].time_worst / max(cells[(o, 'gp-g')].time_worst, 1e-9)
-                 for o in objs}
+                 for o in timed}
         med = {by[o].letter: cells[(o, 'gp-p')].time_median / max(cells[(o, 'gp-g')].time_median, 1e-9)
-               for o in objs}
+               for o in timed}
         out.update({
             'time_ratio_gp_p_over_gp_g_worst': worst,
             'time_ratio_mean': float(np.mean(list(worst.values()))),
@@ -88,8 +90,9 @@ def goal_figures(result: BenchmarkResult) -> dict[str, Any]:
             'time_ratio_median_per_object': med,
             'time_ratio_median_mean': float(np.mean(list(med.values()))),
             'time_ratio_median_median': float(np.median(list(med.values()))),
-            'time_ratio_of_mean_times': float(np.mean([cells[(o, 'gp-p')].time_worst for o in objs])
-                                              / max(np.mean([cells[(o, 'gp-g')].time_worst for o in objs]), 1e-9)),
+            'time_ratio_of_mean_times': float(np.mean([cells[(o, 'gp-p')].time_worst for o in timed])
+                                              / max(np.mean([cells[(o, 'gp-g')].time_worst for o in timed]), 1e-9))
+            if timed else float('nan'),
         })
     if {'gp-g', 'gp-m'} <= have:
         out['gp_g_above_gp_m'] = [by[o].letter for o in objs if cells[(o, 'gp-g')].p_f > cells[(o, 'gp-m')].p_f]
@@ -113,6 +116,10 @@ def _f2(x: float) -> str:
 
 def _ratio(x: float) -> str:
     return f'{x:.1f}x' if x < 10 else f'{x:.0f}x'
+
+
+def _ratio_or_dash(a: float, b: float) -> str:
+    return f'{a / max(b, 1e-9):.1f}x' if math.isfinite(a) and math.isfinite(b) else '—'
 
 
 def _rate(successes: int, trials: int) -> str:
@@ -172,9 +179,8 @@ def table1_markdown(result: BenchmarkResult) -> str:
             r.append(_time(tp) + (f' ({paper["time_gp-p"]:g})' if paper else ''))
             r.append(_time(tg) + (f' ({paper["time_gp-g"]:g})' if paper else ''))
             ratio_ref = f' ({paper["time_gp-p"] / paper["time_gp-g"]:.1f}x)' if paper else ''
-            r.append(f'{tp / max(tg, 1e-9):.1f}x{ratio_ref}')
-            mp, mg = cells[(o.object, 'gp-p')].time_median, cells[(o.object, 'gp-g')].time_median
-            r.append(f'{mp / max(mg, 1e-9):.1f}x')
+            r.append(_ratio_or_dash(tp, tg) + ratio_ref)
+            r.append(_ratio_or_dash(cells[(o.object, 'gp-p')].time_median, cells[(o.object, 'gp-g')].time_median))
         rows.append(r)
     lines += _table(header, rows)
     g = goal_figures(result)
