@@ -413,7 +413,8 @@ def polygon_stamped_to_numpy(msg: Any) -> np.ndarray:
 def posterior_to_gpis_model(posterior: Any, header: Any, f: MessageFactory, com_samples: int = 200) -> Any:
     """:class:`~gpis_grasp_ros.core.gpis.GpisPosterior` → ``gpis_grasp_interfaces/GpisModel``.
 
-    Carries the kernel, the training data (so a consumer can rebuild the exact posterior with
+    Carries the kernel, the training data - values and gradient observations - (so a consumer can rebuild the
+    exact posterior with
     :func:`gpis_model_to_posterior`), mean and variance on the grid, and the centre of mass of the
     mean shape with its RMS spread over ``com_samples`` posterior samples (seeded, deterministic).
     ``f`` builds the messages (rosbags or rclpy flavour). Lengths in m, variances in m^2.
@@ -430,6 +431,12 @@ def posterior_to_gpis_model(posterior: Any, header: Any, f: MessageFactory, com_
         train_x=f.seq(np.asarray(posterior.train_xy, dtype=np.float64).ravel(), np.float64),
         train_y=f.seq(np.asarray(posterior.train_y, dtype=np.float64), np.float64),
         train_noise_variance=f.seq(np.asarray(posterior.train_noise, dtype=np.float64), np.float64),
+        train_grad_x=f.seq(np.asarray(getattr(posterior, 'train_grad_xy', np.zeros((0, 2))), dtype=np.float64).ravel(),
+                           np.float64),
+        train_grad_axis=f.seq(np.asarray(getattr(posterior, 'train_grad_axis', np.zeros(0)), dtype=np.uint8), np.uint8),
+        train_grad=f.seq(np.asarray(getattr(posterior, 'train_grad', np.zeros(0)), dtype=np.float64), np.float64),
+        train_grad_noise_variance=f.seq(np.asarray(getattr(posterior, 'train_grad_noise', np.zeros(0)),
+                                                   dtype=np.float64), np.float64),
         mean=f.seq(np.asarray(posterior.mean, dtype=np.float64), np.float64),
         variance=f.seq(np.asarray(posterior.variance, dtype=np.float64), np.float64),
         center_of_mass=f.new('geometry_msgs/msg/Point', x=float(com_xy[0]), y=float(com_xy[1]), z=float(g.z)),
@@ -441,7 +448,8 @@ def gpis_model_to_posterior(msg: Any) -> Any:
 
     The grid uses the float64 ``resolution`` field when set (``info.resolution`` is float32).
     The posterior (mean, variance, gradient, sampling factor) is rebuilt from the kernel and
-    training data with :func:`gpis_grasp_ros.core.gpis.posterior_from_data`; ValueError on
+    training data (values and gradient observations; a model without gradient arrays is a
+    value-only GP) with :func:`gpis_grasp_ros.core.gpis.posterior_from_data`; ValueError on
     inconsistent array lengths or invalid hyperparameters.
     """
     from gpis_grasp_ros.core import gpis
@@ -473,7 +481,21 @@ def gpis_model_to_posterior(msg: Any) -> Any:
     if not (np.isfinite(noise).all() and (noise >= 0).all() and np.isfinite(train_x).all()
             and np.isfinite(train_y).all()):
         raise ValueError('GpisModel training data must be finite with non-negative noise variances')
+    grad_x = _as_array(getattr(msg, 'train_grad_x', ()), np.float64)
+    grad_axis = _as_array(getattr(msg, 'train_grad_axis', ()), np.uint8).astype(np.int64)
+    grad = _as_array(getattr(msg, 'train_grad', ()), np.float64)
+    grad_noise = _as_array(getattr(msg, 'train_grad_noise_variance', ()), np.float64)
+    k = grad.size
+    if grad_x.size != 2 * k or grad_axis.size != k or grad_noise.size != k:
+        raise ValueError(f'GpisModel gradient arrays disagree: train_grad has {k} values, train_grad_x '
+                         f'{grad_x.size} (expected {2 * k}), train_grad_axis {grad_axis.size}, '
+                         f'train_grad_noise_variance {grad_noise.size} (expected {k})')
+    if k and not (np.isfinite(grad_x).all() and np.isfinite(grad).all() and np.isfinite(grad_noise).all()
+                  and (grad_noise >= 0).all() and np.isin(grad_axis, (0, 1)).all()):
+        raise ValueError('GpisModel gradient observations must be finite with axis 0 or 1 and non-negative noise')
     kp = gpis.KernelParams(signal_variance=c, length_scale=ell, prior_mean=float(msg.prior_mean))
     return gpis.posterior_from_data(geometry, kp, train_x.reshape(-1, 2), train_y, noise, float(msg.jitter),
+                                    train_grad_xy=grad_x.reshape(-1, 2), train_grad_axis=grad_axis,
+                                    train_grad=grad, train_grad_noise=grad_noise,
                                     hyperparameters_optimized=bool(msg.hyperparameters_optimized))
 

@@ -308,7 +308,12 @@ def _posterior():
     sdf = np.linalg.norm(centers, axis=1) - 0.006  # disc of radius 6 mm
     keep = np.arange(len(sdf)) % 3 != 0
     kp = gpis.KernelParams(signal_variance=1e-4, length_scale=0.004, prior_mean=-0.005)
-    return gpis.posterior_from_data(geom, kp, centers[keep], sdf[keep], np.full(keep.sum(), 1e-6), 1e-10)
+    grad = centers[keep] / np.linalg.norm(centers[keep], axis=1, keepdims=True)  # gradient of the disc SDF
+    axis = np.arange(keep.sum()) % 2
+    return gpis.posterior_from_data(geom, kp, centers[keep], sdf[keep], np.full(keep.sum(), 1e-6), 1e-10,
+                                    train_grad_xy=centers[keep], train_grad_axis=axis,
+                                    train_grad=grad[np.arange(keep.sum()), axis],
+                                    train_grad_noise=np.full(keep.sum(), 0.01))
 
 
 @pytest.mark.parametrize('name', sorted(FACTORIES))
@@ -322,13 +327,21 @@ def test_gpis_model_round_trip(name):
     np.testing.assert_allclose(np.asarray(msg.mean).reshape(10, 10), post.mean)
     np.testing.assert_allclose([msg.center_of_mass.x, msg.center_of_mass.y], post.center_of_mass())
     assert msg.center_of_mass.z == 0.7 and msg.center_of_mass_std >= 0
+    assert len(msg.train_grad) == len(post.train_grad) > 0 and len(msg.train_grad_x) == 2 * len(post.train_grad)
     back = cv.gpis_model_to_posterior(msg)
     assert back.geometry == post.geometry and back.geometry.resolution == 0.0021
+    for field in ('train_grad_xy', 'train_grad_axis', 'train_grad', 'train_grad_noise'):
+        np.testing.assert_array_equal(getattr(back, field), getattr(post, field))
     np.testing.assert_allclose(back.mean, post.mean, atol=1e-12)
     np.testing.assert_allclose(back.variance, post.variance, atol=1e-14)
+    np.testing.assert_allclose(back.gradient, post.gradient, atol=1e-10)
     bad = copy.copy(msg)
     bad.train_noise_variance = np.zeros(3) if name == 'rosbags' else array.array('d', [0.0] * 3)
     with pytest.raises(ValueError, match='training arrays disagree'):
+        cv.gpis_model_to_posterior(bad)
+    bad = copy.copy(msg)
+    bad.train_grad_noise_variance = np.zeros(3) if name == 'rosbags' else array.array('d', [0.0] * 3)
+    with pytest.raises(ValueError, match='gradient arrays disagree'):
         cv.gpis_model_to_posterior(bad)
 
 
