@@ -264,7 +264,11 @@ def gp_z_scores(posterior: GpisPosterior, true_sdf: np.ndarray, true_geometry: A
     return {'gp_z_rms': float(np.sqrt(np.mean(z ** 2))),
             'gp_z_rms_near_surface': float(np.sqrt(np.mean(z[near] ** 2))) if near.any() else float('nan'),
             'gp_coverage95': float(np.mean(np.abs(z) < 1.959964)),
-            'gp_coverage95_near_surface': float(np.mean(np.abs(z[near]) < 1.959964)) if near.any() else float('nan')}
+            'gp_coverage95_near_surface': float(np.mean(np.abs(z[near]) < 1.959964)) if near.any() else float('nan'),
+            # Mean error μ − sdf_true (cells; < 0: the mean shape bulges out) and mean σ (cells) near the surface.
+            'gp_bias_near_surface_cells': float(np.mean(np.asarray(posterior.mean)[near] - truth[near]) / g.resolution)
+            if near.any() else float('nan'),
+            'gp_sd_near_surface_cells': float(np.mean(sd[near]) / g.resolution) if near.any() else float('nan')}
 
 
 def calibrate_object(posterior: GpisPosterior, true_sdf: np.ndarray, true_geometry: Any,

@@ -304,7 +304,8 @@ def calibration_markdown(result: BenchmarkResult, summary: dict[str, Any] | None
                      f'{m["brier"]:.3f}', f'{m["bias"]:+.3f}', f'{mp.get("ece", float("nan")):.3f}'])
     lines += ['## All objects', ''] + _table(header, body, 'lrrrrr')
     lines += ['', '## Per object: ECE / Brier', '']
-    header = ['Object'] + [labels[k] for k in keys] + ['GP z RMS all / near surface', '95 % coverage', 'σ ×']
+    header = ['Object'] + [labels[k] for k in keys] + ['GP z RMS all / near surface', '95 % coverage', 'σ ×',
+                                                      'μ − sdf / σ near surface (cells)']
     body = []
     for o in result.objects:
         m = summary['objects'].get(o.letter, {})
@@ -313,6 +314,8 @@ def calibration_markdown(result: BenchmarkResult, summary: dict[str, Any] | None
         r.append(f'{i["gp_z_rms"]:.2f} / {i["gp_z_rms_near_surface"]:.2f}' if 'gp_z_rms' in i else '—')
         r.append(f'{i["gp_coverage95"]:.2f}' if 'gp_coverage95' in i else '—')
         r.append(f'{i["sigma_inflation"]:.1f}' if 'sigma_inflation' in i else '—')
+        r.append(f'{i["gp_bias_near_surface_cells"]:+.2f} / {i["gp_sd_near_surface_cells"]:.2f}'
+                 if 'gp_bias_near_surface_cells' in i else '—')
         body.append(r)
     lines += _table(header, body)
     lines += ['']
