@@ -148,3 +148,24 @@ def test_markers_are_drawn_at_the_jaw_poses():
     np.testing.assert_allclose([arrow[0].x, arrow[0].y, arrow[0].z], _xyz(resp.jaw1), atol=1e-12)
     np.testing.assert_allclose(_xyz(by_id[5]), _xyz(resp.contact1), atol=1e-12)
     np.testing.assert_allclose(_xyz(by_id[6]), _xyz(resp.contact2), atol=1e-12)
+
+
+def test_action_result_carries_the_same_fields():
+    from gpis_grasp_interfaces.action import PlanGrasp
+
+    hdr = cv.header(rcv.RclpyFactory(), STAMP, 'cam')
+    args = dict(geometry=_geometry(45.0), grasp_height=0.015, contacts_xy=[[0.0, 0.01], [0.02, 0.01]])
+    result = _result([-0.01, 0.01], [0.03, 0.01])
+    srv = rcv.fill_grasp_plan_response(GraspPlan.Response(), result, hdr, **args)
+    act = rcv.fill_grasp_plan_response(PlanGrasp.Result(), result, hdr, **args)
+    for name in ('jaw1', 'jaw2', 'grasp_pose', 'contact1', 'contact2'):
+        np.testing.assert_array_equal(_xyz(getattr(act, name)), _xyz(getattr(srv, name)))
+    assert (act.width, act.jaw_separation, act.grasp_height) == (srv.width, srv.jaw_separation, srv.grasp_height)
+    assert act.width == pytest.approx(0.02)
+
+
+def test_automatic_grasp_height():
+    assert rcv.grasp_height_for(0.012, 0.05, 0.02) == 0.012  # given
+    assert rcv.grasp_height_for(-1.0, 0.066, 0.02) == pytest.approx(0.033)  # half the object
+    assert rcv.grasp_height_for(-1.0, 0.005, 0.02) == pytest.approx(0.01)  # flat object: pads just above the table
+    assert rcv.grasp_height_for(-1.0, 0.0, 0.02) == pytest.approx(0.01)  # unknown height
