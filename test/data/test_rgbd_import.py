@@ -1,0 +1,136 @@
+"""Real RGB-D captures → bags (gpis_grasp_ros.data.rgbd_import, tools/import_rgbd), ROS-free."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
+from tilted_scene import Box, TiltedScene  # noqa: E402
+
+from gpis_grasp_ros.core.noise_model import SensorModel  # noqa: E402
+from gpis_grasp_ros.data import rgbd_import as ri  # noqa: E402
+from gpis_grasp_ros.data.bags import load_bag  # noqa: E402
+from gpis_grasp_ros.tools import import_rgbd  # noqa: E402
+
+BOX = Box(0.0, 0.01, 0.03, 0.02, 0.04)
+
+
+@pytest.fixture(scope='module')
+def capture_files(tmp_path_factory):
+    """A tilted synthetic capture written as a user would have it: JPEG-free PNG colour, 16-bit mm depth, YAML."""
+    out = tmp_path_factory.mktemp('capture')
+    scene = TiltedScene(45.0, boxes=[BOX], width=320, height=240, focal_px=300.0)
+    rgb, depth, label = scene.frames(1, seed=4, model=SensorModel.named('realsense_d400'))
+    depth_mm = np.where(np.isfinite(depth[0]), np.round(depth[0] * 1000), 0).astype(np.uint16)
+    cv2.imwrite(str(out / 'rgb.png'), rgb[0][..., ::-1])
+    cv2.imwrite(str(out / 'depth.png'), depth_mm)
+    clean, _, _ = scene.render()
+    cv2.imwrite(str(out / 'true-depth.png'), np.where(np.isfinite(clean), np.round(clean * 1000), 0).astype(np.uint16))
+    cv2.imwrite(str(out / 'mask.png'), np.where(label == 1, 255, 0).astype(np.uint8))
+    i = scene.intrinsics
+    (out / 'cam.yaml').write_text(yaml.safe_dump({'fx': i.fx, 'fy': i.fy, 'cx': i.cx, 'cy': i.cy,
+                                                  'xres': i.width, 'yres': i.height}))
+    v, u = np.nonzero(label == 1)
+    return out, scene, depth_mm, (float(u.mean()), float(v.mean()))
+
+
+def test_depth_formats(tmp_path):
+    mm = np.array([[0, 800], [1234, 65535]], dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / 'd.png'), mm)
+    d = ri.load_depth(tmp_path / 'd.png')
+    assert np.isnan(d[0, 0]) and d[0, 1] == pytest.approx(0.8) and d[1, 0] == pytest.approx(1.234)
+    np.save(tmp_path / 'm.npy', np.array([[0.0, 0.8], [np.inf, -1.0]], dtype=np.float32))
+    d = ri.load_depth(tmp_path / 'm.npy')
+    assert d[0, 1] == pytest.approx(0.8) and np.isnan(d[[0, 1, 1], [0, 0, 1]]).all()
+    cv2.imwrite(str(tmp_path / 'f.tiff'), np.array([[0.5, np.nan]], dtype=np.float32))
+    assert ri.load_depth(tmp_path / 'f.tiff')[0, 0] == pytest.approx(0.5)
+    np.save(tmp_path / 'i.npy', mm)
+    assert ri.load_depth(tmp_path / 'i.npy')[1, 0] == pytest.approx(1.234)
+    cv2.imwrite(str(tmp_path / 'eight.png'), np.zeros((4, 4), np.uint8))
+    with pytest.raises(ValueError, match='8-bit'):
+        ri.load_depth(tmp_path / 'eight.png')
+    np.save(tmp_path / 'mm_as_float.npy', mm.astype(np.float32))
+    with pytest.raises(ValueError, match='metres'):
+        ri.load_depth(tmp_path / 'mm_as_float.npy')
+    with pytest.raises(FileNotFoundError):
+        ri.load_depth(tmp_path / 'missing.png')
+
+
+def test_intrinsics_layouts(tmp_path):
+    a = ri.load_intrinsics({'fx': 921, 'fy': 920, 'cx': 642, 'cy': 359, 'xres': 1280, 'yres': 720})
+    b = ri.load_intrinsics({'K': [921, 0, 642, 0, 920, 359, 0, 0, 1], 'width': 1280, 'height': 720})
+    (tmp_path / 'c.yaml').write_text(yaml.safe_dump({'image_width': 1280, 'image_height': 720,
+                                                      'camera_matrix': {'rows': 3, 'cols': 3,
+                                                                        'data': [921, 0, 642, 0, 920, 359, 0, 0, 1]}}))
+    c = ri.load_intrinsics(tmp_path / 'c.yaml')
+    assert a == b == c and (a.fx, a.fy, a.cx, a.cy, a.width, a.height) == (921, 920, 642, 359, 1280, 720)
+    assert ri.load_intrinsics({'fx': 1, 'fy': 1, 'cx': 0, 'cy': 0}, width=4, height=3).width == 4
+    with pytest.raises(ValueError, match='image size'):
+        ri.load_intrinsics({'fx': 1, 'fy': 1, 'cx': 0, 'cy': 0})
+    with pytest.raises(ValueError, match='fx, fy, cx, cy'):
+        ri.load_intrinsics({'fx': 1, 'width': 4, 'height': 3})
+
+
+def test_crop_and_scale_keep_the_geometry(capture_files):
+    """Back-projected table points of the cropped + downscaled capture lie on the same plane, and a
+    pixel maps to the same 3D ray, so the intrinsics follow the images exactly."""
+    out, scene, _, _ = capture_files
+    cap = ri.load_capture(out / 'rgb.png', out / 'depth.png', out / 'cam.yaml')
+    small, _ = ri.crop_and_scale(cap, (40, 30, 300, 220), 0.5)
+    assert small.depth.shape == (95, 130) and small.intrinsics.width == 130
+    pts = small.intrinsics.rays() * small.depth[..., None]
+    ok = np.isfinite(small.depth)
+    ray_full = cap.intrinsics.rays()[150, 200]
+    u, v = ri.map_pixel(200, 150, (40, 30, 300, 220), 0.5)
+    i = small.intrinsics
+    ray_small = np.array([(u - i.cx) / i.fx, (v - i.cy) / i.fy, 1.0])
+    assert np.allclose(ray_small, ray_full, atol=1e-9)
+    h = pts[ok] @ scene.normal + scene.offset
+    label_small = np.abs(h) < 0.01
+    assert label_small.mean() > 0.8 and np.median(np.abs(h[label_small])) < 0.003  # 1 mm rounding + D435 noise
+    with pytest.raises(ValueError, match='crop'):
+        ri.crop_and_scale(cap, (0, 0, 10_000, 10), 1.0)
+
+
+def test_ground_truth_is_the_box_footprint_in_the_table_frame(capture_files):
+    out, scene, _, target = capture_files
+    cap = ri.load_capture(out / 'rgb.png', out / 'depth.png', out / 'cam.yaml')
+    table = ri.capture_table(cap, SensorModel.named('realsense_d400'))
+    truth = ri.ground_truth_from_mask(cap, cv2.imread(str(out / 'mask.png'), 0), ri.load_depth(out / 'true-depth.png'),
+                                      target, table)
+    g = truth.geometry
+    xy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    inside = (np.abs(xy[..., 0] - BOX.x) < BOX.half_x) & (np.abs(xy[..., 1] - BOX.y) < BOX.half_y)
+    occ = truth.sdf < 0
+    assert (inside & occ).sum() / (inside | occ).sum() > 0.9
+    assert np.linalg.norm(scene.table_xy(truth.center_of_mass) - (BOX.x, BOX.y)) < 0.003
+    assert np.abs(truth.outline @ scene.normal + scene.offset).max() < 0.003  # outline on the table plane
+    with pytest.raises(ValueError, match='not on the mask'):
+        ri.ground_truth_from_mask(cap, cv2.imread(str(out / 'mask.png'), 0), cap.depth, (0, 0), table)
+
+
+def test_cli_writes_a_one_frame_bag_in_the_shipped_layout(capture_files, tmp_path):
+    out, scene, depth_mm, target = capture_files
+    bag = tmp_path / 'capture.mcap'
+    argv = ['--rgb', str(out / 'rgb.png'), '--depth', str(out / 'depth.png'), '--intrinsics', str(out / 'cam.yaml'),
+            str(bag), '--gt-mask', str(out / 'mask.png'), '--gt-depth', str(out / 'true-depth.png'),
+            '--target-pixel', str(target[0]), str(target[1])]
+    assert import_rgbd.main(argv) == 0
+    for source in ('cloud', 'images'):
+        loaded = load_bag(bag, frames=10, source=source)
+        assert loaded.depth_frames.shape == (1, 240, 320)  # one frame is one frame
+        assert np.allclose(np.nan_to_num(loaded.depth_frames[0]), depth_mm / 1000.0, atol=1e-6)
+        assert loaded.intrinsics.fx == pytest.approx(300.0, abs=1e-3)
+    assert loaded.true_sdf is not None
+    g = loaded.true_geometry
+    assert np.allclose(-g.rotation_matrix[:, 2], scene.normal, atol=0.02)  # ground truth grid in the table plane
+    assert import_rgbd.main(argv) == 2  # exists already
+    no_intrinsics = ['--rgb', str(out / 'rgb.png'), '--depth', str(out / 'depth.png'), str(tmp_path / 'x')]
+    assert import_rgbd.main(no_intrinsics) == 2
+    assert import_rgbd.main(argv[:6] + [str(tmp_path / 'y.mcap'), '--gt-mask', str(out / 'mask.png')]) == 2

@@ -1,0 +1,132 @@
+"""End to end on real D435 captures (bags/real, made by ``gpis-grasp import-rgbd``; Apache-2.0 ClearGrasp data).
+
+Head-camera-like views (44-52 degrees) of transparent objects among others. What these tests hold
+(see README "Perception on a real, tilted camera" for the figures, including the targets missed):
+the table plane and the grid pose, the isolation of the target from its neighbours, the planner
+and gripper simulation on the imported ground truth, and the node's behaviour (grids published in
+the table plane, or a latched reason when the target cannot be isolated).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from nav_msgs.msg import OccupancyGrid
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
+
+from gpis_grasp_ros.core.contacts import bilinear
+from gpis_grasp_ros.core.grid import quaternion_to_rotation
+from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
+from gpis_grasp_ros.data import messages
+from gpis_grasp_ros.data.bags import load_bag
+from gpis_grasp_ros.ros import conversions
+from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, RELIABLE_SENSOR_QOS
+from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
+from gpis_grasp_ros.tools.import_rgbd import evaluate_bag
+from rosutil import RosHarness, wait_for
+
+REAL = Path(__file__).resolve().parents[2] / 'bags' / 'real'
+BOTTLE = REAL / 'cleargrasp_000000080_bottle.mcap'
+FLOWER = REAL / 'cleargrasp_000000123_flower_box.mcap'
+TARGETS = {BOTTLE: (220.8, 160.8), FLOWER: (200.8, 122.8)}  # the README's target pixels in the bag images
+D400 = SensorModel.named('realsense_d400')
+
+
+def test_licence_ships_with_the_data():
+    assert 'Apache License' in (REAL / 'LICENSE').read_text()
+    assert sum(p.stat().st_size for p in REAL.glob('*.mcap')) < 5e6
+
+
+@pytest.fixture(scope='module')
+def bottle():
+    scene = load_bag(BOTTLE, frames=10)
+    params = SensingParams(sensor=D400, target='pixel', target_point=TARGETS[BOTTLE])
+    return scene, segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, params)
+
+
+def test_real_table_plane_and_grid_pose(bottle):
+    scene, result = bottle
+    assert scene.depth_frames.shape[0] == 1  # one frame is one frame
+    assert result.effective_frames == 1.0
+    assert 45.0 < result.table.tilt_deg < 55.0  # the data set's 45-52 degree views
+    assert result.table.inlier_fraction > 0.6
+    g = result.geometry
+    corners = g.to_sensor(np.array([[g.origin_x, g.origin_y], [g.origin_x + g.size_m[0], g.origin_y + g.size_m[1]]]))
+    assert np.abs(result.table.height(corners)).max() < 1e-6
+    # the ground truth (imported from the opaque twin of the scene) lies in the same plane
+    tg = scene.true_geometry
+    assert np.degrees(np.arccos(np.clip(tg.table_normal @ g.table_normal, -1, 1))) < 0.5
+
+
+def test_real_target_is_isolated_from_its_neighbours(bottle):
+    """Five objects on the cloth: the target's grid holds the lying bottle only - every occupied cell is on
+    the true bottle (none on the upright bottles next to it). Only part of the clear bottle is seen."""
+    scene, result = bottle
+    assert result.objects_seen >= 3
+    g, tg = result.geometry, scene.true_geometry
+    true_sdf = bilinear(scene.true_sdf.astype(np.float64), tg, tg.from_sensor(g.to_sensor(g.cell_centers()))[0])
+    occupied = result.occupancy >= 0.5
+    assert occupied.sum() >= 20
+    assert np.mean(true_sdf[occupied] < 0) > 0.95
+    assert g.size_m[0] < 0.25  # a grid around one bottle, not around the scene
+
+
+def test_real_bottle_plan_and_simulated_executions():
+    ev = evaluate_bag(BOTTLE, TARGETS[BOTTLE], trials=20, seed=0)
+    assert ev.trials == 20 and 0 <= ev.successes <= 20
+    assert 0.0 < ev.occupancy_iou <= 1.0
+    assert ev.jaw_clearance_m > 0.005  # no jaw on another object seen on the table
+
+
+def _cloud(path: Path, stamp_ns: int) -> PointCloud2:
+    f = conversions.RclpyFactory()
+    scene = load_bag(path, frames=1)
+    xyz = scene.intrinsics.rays() * scene.depth_frames[0][..., None]
+    return messages.xyz_rgb_to_pointcloud2(f, xyz.astype(np.float32), scene.rgb_frames[0],
+                                           messages.header(f, stamp_ns, scene.frame_id))
+
+
+def _run_node(path: Path) -> tuple[list, list, SegmentationNode]:
+    """segmentation_node on one bag's cloud with its target pixel; returns the grids and statuses seen."""
+    ros = RosHarness()
+    try:
+        node = ros.add(SegmentationNode(context=ros.context, parameter_overrides=[
+            Parameter('input_reliability', value='reliable'), Parameter('frames_to_average', value=1),
+            Parameter('sensor_model', value='realsense_d400'), Parameter('target', value='pixel'),
+            Parameter('target_point', value=list(TARGETS[path]))]))
+        probe = ros.node('probe')
+        grids, status = [], []
+        probe.create_subscription(OccupancyGrid, 'object/occupancy', grids.append, LATCHED_QOS)
+        probe.create_subscription(String, 'segmentation/status', status.append, LATCHED_QOS)
+        pub = probe.create_publisher(PointCloud2, 'camera/depth/points', RELIABLE_SENSOR_QOS)
+        assert wait_for(lambda: pub.get_subscription_count() > 0, 5.0)
+        pub.publish(_cloud(path, 1))
+        assert wait_for(lambda: bool(status), 60.0)
+        wait_for(lambda: bool(grids), 1.0)
+        # the node is still alive and serving after either outcome
+        assert node.count_subscribers('segmentation/status') >= 1 and node.context.ok()
+        return grids, status, node
+    finally:
+        ros.close()
+
+
+def test_segmentation_node_publishes_grids_in_the_tilted_table_plane():
+    grids, status, _ = _run_node(BOTTLE)
+    assert status[-1].data.startswith('ok:') and grids
+    q = grids[-1].info.origin.orientation
+    r = quaternion_to_rotation(np.array([q.x, q.y, q.z, q.w]))
+    tilt = np.degrees(np.arccos(np.clip(r[2, 2], -1, 1)))
+    assert 45.0 < tilt < 55.0  # the grid lies in the tilted table plane, not fronto-parallel
+
+
+def test_segmentation_node_latches_the_reason_when_the_target_cannot_be_isolated():
+    """The clear flower box touches the notebook, whose evidence reaches the image border: nothing is
+    published and the reason is latched on segmentation/status."""
+    grids, status, _ = _run_node(FLOWER)
+    assert not grids
+    assert status[-1].data.startswith('failed:') and 'border' in status[-1].data
