@@ -248,7 +248,7 @@ def reliability_figure(rows: Sequence[dict[str, Any]], summary: dict[str, dict[s
     """
     keys = [k for k, _ in PREDICTORS] + [k for k in DIAGNOSTICS if rows and k in rows[0]]
     labels = dict(PREDICTORS) | DIAGNOSTICS
-    fig = Figure(figsize=(3.4 * len(keys), 4.0))
+    fig = Figure(figsize=(3.4 * len(keys), 4.5))
     s = np.array([r['sim_successes'] for r in rows], dtype=np.float64)
     n = np.array([r['sim_trials'] for r in rows], dtype=np.float64)
     for i, key in enumerate(keys):
