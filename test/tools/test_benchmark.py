@@ -172,3 +172,18 @@ def test_power_law_fit_recovers_the_exponent(k: float) -> None:
     assert k_noisy == pytest.approx(k, abs=0.1)
     with pytest.raises(ValueError):
         scaling.fit_power_law([25, 25], [1.0, 2.0])
+
+
+@pytest.mark.parametrize('argv', [['--methods', 'gp-x'], ['--methods', ','], ['--calibration-trials', '0'],
+                                  ['--calibration-candidates', '-1'], ['--seeds', '0']])
+def test_cli_refuses_bad_arguments(argv: list[str]) -> None:
+    with pytest.raises(SystemExit):
+        cli.parse_args(argv)
+
+
+def test_cli_refuses_bags_with_the_same_name(tmp_path: Path) -> None:
+    other = tmp_path / 'A_tape_dispenser.mcap'
+    other.write_bytes(BAGS[0].read_bytes())
+    assert cli.main(['--bags', str(BAGS[0]), str(other), '--out', str(tmp_path / 'out'), '--quiet']) == 2
+    assert cli.main(['--bags', str(BAGS[0]), '--methods', 'gp-m,gp-g', '--calibration', '--out',
+                     str(tmp_path / 'out'), '--quiet']) == 2  # the calibration study needs GP-P

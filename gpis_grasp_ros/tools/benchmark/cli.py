@@ -210,6 +210,12 @@ def main(argv: list[str] | None = None) -> int:
     if not bags or missing:
         print(f'gpis-grasp benchmark: bag(s) not found: {missing or "bags/*.mcap"}', file=sys.stderr)
         return 2
+    stems = [Path(b).stem for b in bags]
+    if len(set(stems)) != len(stems):
+        dup = sorted({s for s in stems if stems.count(s) > 1})
+        print(f'gpis-grasp benchmark: bags with the same name {dup} (objects are keyed by name): run each set '
+              'separately with its own --out', file=sys.stderr)
+        return 2
     if args.calibration and any(k not in settings.methods for k in ('gp-p',)):
         print('gpis-grasp benchmark: --calibration needs gp-p among --methods', file=sys.stderr)
         return 2
