@@ -16,6 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'play': ('gpis_grasp_ros.ros.player', 'replay a bag with rclpy publishers (ros2 bag play stand-in)'),
     'demo': ('gpis_grasp_ros.tools.demo', 'replay a bag through the nodes, plan, execute, write images'),
     'benchmark': ('gpis_grasp_ros.tools.benchmark', "reproduce the paper's Table I and runtime scaling"),
+    'soak': ('gpis_grasp_ros.tools.soak', 'reliability figures of the nodes as processes (load, faults, shutdown)'),
     'make-dataset': ('gpis_grasp_ros.tools.dataset_cli', 'generate a deterministic object set (manifest, bags)'),
     'evaluate': ('gpis_grasp_ros.tools.evaluate', 'dataset evaluation: serial, process or Dask executor'),
     'tune': ('gpis_grasp_ros.tools.tune', 'k-fold cross-validation of lambda and alpha on a dataset'),

@@ -20,8 +20,9 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
@@ -270,13 +271,14 @@ def guarded_service(node: Node, what: str, callback: Callable[[Any, Any], Any]) 
 SHUTDOWN_GRACE = 0.6
 
 
-def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:
+def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> NoReturn:
     """main() of every node: init, spin a multi-threaded executor, graceful shutdown.
 
     A bad parameter value at start-up ends the process with a one-line error (exit code 2)
     instead of a stack trace. SIGINT/SIGTERM: the node stops taking work
     (:meth:`GuardedNode.begin_shutdown`), in-flight requests are answered within
-    :data:`SHUTDOWN_GRACE` s, then the node and context are destroyed and the process exits 0.
+    :data:`SHUTDOWN_GRACE` s, then the node and context are destroyed and the process exits 0
+    (``os._exit``: this is the process's main function, never call it from a test).
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
@@ -311,15 +313,17 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads
     except (ValueError, ParameterException) as exc:
         print(f'error: {exc}', file=sys.stderr)
         status = 2
+    except Exception:  # noqa: BLE001 - reported, then the same clean exit path
+        traceback.print_exc()
+        status = 1
     finally:
-        clean = True
         if node is not None:
             if isinstance(node, GuardedNode):
                 node.begin_shutdown()
-                clean = node.wait_idle(SHUTDOWN_GRACE)
+                node.wait_idle(SHUTDOWN_GRACE)
                 time.sleep(0.1)  # let the executor send the last responses
         if executor is not None:
-            clean = executor.shutdown(timeout_sec=0.2) and clean
+            executor.shutdown(timeout_sec=0.2)
         if node is not None:
             try:
                 node.destroy_node()
@@ -330,10 +334,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads
             spinner.join(timeout=0.5)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    if not clean:
-        # A callback is still computing (e.g. a GPIS fit): everything that must be answered was
-        # answered and ROS is shut down; do not wait for it.
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(status)
-    return status
+    # Everything that had to be answered was answered and ROS is shut down. Do not wait for a
+    # callback still computing (e.g. a GPIS fit) nor for the interpreter's slow teardown of the
+    # numeric and DDS libraries (seconds on a loaded machine): exit now.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)

@@ -67,8 +67,6 @@ MAX_QUEUE_LIMIT = 128
 MAX_WORKERS = 8
 #: Range of the uncertainty_penalty parameter; requests outside it (other than negative = default) are rejected.
 LAMBDA_RANGE = (0.0, 1000.0)
-#: Seconds a stopped plan may take beyond its deadline before the caller is answered without it.
-STOP_GRACE = 2.0
 
 
 @dataclass(frozen=True)
@@ -286,15 +284,17 @@ class PlannerNode(GuardedNode):
             return len(self._queue)
 
     def _wait(self, job: PlanJob) -> None:
-        """Block until the job is answered (or stopped and overdue by more than STOP_GRACE)."""
-        while not job.done.wait(0.1):
-            if job.started is None and self.shutting_down.is_set() and not any(w.is_alive() for w in self._workers):
-                job.stopped = SHUTTING_DOWN
+        """Block until the job is answered: finished, stopped, past its deadline, or shutting down.
+
+        The caller is answered at the deadline even if the planner has not reached its next
+        checkpoint yet (the worker stops there and then takes the next request).
+        """
+        while not job.done.wait(0.02):
+            if self.shutting_down.is_set():
+                job.stopped = job.stopped or SHUTTING_DOWN
                 return
-            if job.started is not None and time.monotonic() > job.deadline + STOP_GRACE:
+            if job.started is not None and time.monotonic() > job.deadline:
                 job.stopped = job.stopped or 'timeout'
-                self.get_logger().warning(f'{job.method} did not stop within {STOP_GRACE} s of its deadline; '
-                                          'answering the caller without it')
                 return
 
     def _work(self) -> None:
@@ -334,7 +334,7 @@ class PlannerNode(GuardedNode):
         params = self._planner_params(job)
         try:
             job.result = planners.plan(job.method, job.posterior, params, seed=job.seed, control=control)
-            job.stopped = str(getattr(job.result, 'stopped', '') or '')
+            job.stopped = job.stopped or str(getattr(job.result, 'stopped', '') or '')
         except Exception as exc:  # noqa: BLE001 - reported to the caller, never kills the node
             job.error = exc
 

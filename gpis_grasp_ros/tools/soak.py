@@ -1,0 +1,555 @@
+"""``gpis-grasp soak``: reliability figures of the ROS nodes run as separate processes.
+
+Starts segmentation_node (cloud input, and a second one with image input), gpis_node,
+planner_node and gripper_sim_node as separate processes (``python -m``, loopback-only discovery,
+their own ROS domain), then, in this order:
+
+1. **replay**: every shipped bag, one-shot, ``passes`` times, each pass a new ``gpis-grasp play
+   --reliable`` process started after the nodes: frames used per estimate (from
+   ``segmentation/status``) and the time from the end of the player process to the GPIS model;
+2. **plan before**: one GP-GPIS-OPT plan with a fixed seed on the last bag's model;
+3. **fuzz**: ``malformed`` malformed messages spread over all node inputs (clouds, images,
+   camera info, occupancy and noise grids, GPIS models, ground truth SDF and centre of mass),
+   each violating a size or value limit in its own way, then the same plan again: it must be
+   identical; node deaths, guard exceptions ("unexpected" in the logs), rejected-message warnings;
+4. **bad requests**: ``bad_requests`` degenerate plan_grasp / execute_grasp requests: every one
+   must be answered success=false with a reason;
+5. **load**: ``concurrent`` GP-GPIS-OPT requests at once from ``clients`` client nodes: answered
+   %, p50/p95/max latency, throughput;
+6. **timeout**: ``planning_timeout`` set at run time to its minimum (0.1 s): slow requests must be
+   answered as timeouts, latency vs timeout, and the queue wait of the next request;
+7. **shutdown**: SIGINT to every node while a plan is running: exit codes, seconds to exit,
+   error lines in the logs, and the in-flight caller's answer.
+
+Bounded in count and time; loopback only. Prints a table of the figures (and ``--json`` writes them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+NODES = {
+    'segmentation_node': ['-p', 'input_reliability:=reliable'],
+    # image input, fed only by the fuzzer (under /images so the bag replay does not reach it)
+    'segmentation_images': ['-r', '__node:=segmentation_images', '-p', 'input_mode:=images',
+                            '-r', 'camera/rgb/image_raw:=/images/camera/rgb/image_raw',
+                            '-r', 'camera/depth/image_raw:=/images/camera/depth/image_raw',
+                            '-r', 'camera/rgb/camera_info:=/images/camera/rgb/camera_info',
+                            '-r', 'object/occupancy:=/images/object/occupancy',
+                            '-r', 'object/noise_map:=/images/object/noise_map',
+                            '-r', 'segmentation/status:=/images/segmentation/status'],
+    'gpis_node': [],
+    'planner_node': ['-p', 'max_queue:=128', '-p', 'workers:=2'],
+    'gripper_sim_node': [],
+}
+MODULES = {'segmentation_images': 'segmentation_node'}
+
+
+def _percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float('nan')
+
+
+def _peak_rss_mb(pid: int) -> float:
+    try:
+        text = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return float('nan')
+    m = re.search(r'VmHWM:\s+(\d+) kB', text)
+    return int(m.group(1)) / 1024 if m else float('nan')
+
+
+class Soak:
+    """The node processes, a client node in this process, and the figures."""
+
+    def __init__(self, domain: int, workdir: Path) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import MultiThreadedExecutor
+
+        self.domain = domain
+        self.workdir = workdir
+        self.env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+                        PYTHONUNBUFFERED='1', RCUTILS_COLORIZED_OUTPUT='0')
+        os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.logs: dict[str, Path] = {}
+        self.figures: dict[str, Any] = {}
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = rclpy.create_node('soak', context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=8, context=self.context)
+        self.executor.add_node(self.node)
+        self._spin = threading.Thread(target=self.executor.spin, daemon=True)
+        self._spin.start()
+
+    # ------------------------------------------------------------------ processes
+    def start_nodes(self) -> None:
+        for name, extra in NODES.items():
+            module = f'gpis_grasp_ros.ros.nodes.{MODULES.get(name, name)}'
+            log = self.workdir / f'{name}.log'
+            self.logs[name] = log
+            self.procs[name] = subprocess.Popen([sys.executable, '-m', module, '--ros-args', *extra], env=self.env,
+                                                stdout=log.open('w'), stderr=subprocess.STDOUT, cwd=ROOT)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            if all('started;' in self.logs[n].read_text() for n in self.procs):
+                return
+            dead = [n for n, p in self.procs.items() if p.poll() is not None]
+            if dead:
+                raise RuntimeError(f'node(s) {dead} exited at start-up; see {self.workdir}')
+            time.sleep(0.2)
+        raise RuntimeError('nodes did not start within 60 s')
+
+    def log_count(self, pattern: str, names: list[str] | None = None) -> int:
+        return sum(len(re.findall(pattern, self.logs[n].read_text())) for n in (names or list(self.logs)))
+
+    def close(self) -> None:
+        import rclpy
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.kill()
+        self.executor.shutdown(timeout_sec=2.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    # ------------------------------------------------------------------ helpers
+    def call(self, client: Any, request: Any, timeout: float = 120.0) -> tuple[Any, float]:
+        """Call a service, wait for the answer; (response or None, latency s)."""
+        done = threading.Event()
+        start = time.monotonic()
+        future = client.call_async(request)
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout):
+            return None, time.monotonic() - start
+        return future.result(), time.monotonic() - start
+
+    def plan_client(self, node: Any = None):
+        from gpis_grasp_interfaces.srv import GraspPlan
+        from gpis_grasp_ros.ros.nodes.common import SERVICE_QOS
+        cli = (node or self.node).create_client(GraspPlan, 'plan_grasp', qos_profile=SERVICE_QOS)
+        if not cli.wait_for_service(timeout_sec=20.0):
+            raise RuntimeError('plan_grasp not available')
+        return cli
+
+    def set_param(self, node_name: str, name: str, value: Any) -> bool:
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+        cli = self.node.create_client(SetParameters, f'/{node_name}/set_parameters')
+        if not cli.wait_for_service(timeout_sec=10.0):
+            return False
+        res, _ = self.call(cli, SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
+        self.node.destroy_client(cli)
+        return bool(res and res.results[0].successful)
+
+    # ------------------------------------------------------------------ 1. replay
+    def replay(self, bags: list[Path], passes: int) -> None:
+        from std_msgs.msg import String
+
+        from gpis_grasp_interfaces.msg import GpisModel
+        from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
+        status: list[tuple[float, str]] = []
+        models: list[tuple[float, Any]] = []
+        self.node.create_subscription(String, 'segmentation/status',
+                                      lambda m: status.append((time.monotonic(), m.data)), LATCHED_QOS)
+        self.node.create_subscription(GpisModel, 'gpis/model', lambda m: models.append((time.monotonic(), m)),
+                                      LATCHED_QOS)
+        time.sleep(1.0)
+        rows, frames_used, gpis_delays, failures = [], [], [], 0
+        for bag in bags:
+            for _ in range(passes):
+                n_status, n_models = len(status), len(models)
+                player = subprocess.run([sys.executable, '-m', 'gpis_grasp_ros.tools.cli', 'play', str(bag),
+                                         '--reliable'], env=self.env, cwd=ROOT, capture_output=True, text=True,
+                                        timeout=120)
+                end = time.monotonic()
+                deadline = end + 30
+                while time.monotonic() < deadline and (len(status) == n_status or len(models) == n_models):
+                    time.sleep(0.02)
+                new = [s for _, s in status[n_status:]]
+                used = [int(m.group(1)) for s in new for m in [re.search(r'from (\d+) frames', s)] if m]
+                if player.returncode != 0 or len(models) == n_models or not used:
+                    failures += 1
+                    continue
+                frames_used.append(used[0])
+                gpis_delays.append(models[n_models][0] - end)
+            rows.append(bag.name)
+        self.figures['replay'] = {
+            'bags': len(bags), 'passes_per_bag': passes, 'passes_ok': len(frames_used), 'failures': failures,
+            'frames_used_min': min(frames_used) if frames_used else 0,
+            'frames_used_max': max(frames_used) if frames_used else 0,
+            'gpis_after_player_exit_s_max': max(gpis_delays) if gpis_delays else float('nan'),
+            'gpis_after_player_exit_s_p50': _percentile(gpis_delays, 50),
+        }
+        self.last_model = models[-1][1] if models else None
+
+    # ------------------------------------------------------------------ 2-3. fuzz
+    def plan_once(self, seed: int = 11) -> Any:
+        from gpis_grasp_interfaces.srv import GraspPlan
+        res, _ = self.call(self.plan_client(), GraspPlan.Request(method='gp-gpis-opt', seed=seed))
+        return res
+
+    def fuzz(self, count: int, seed: int = 0) -> None:
+        from geometry_msgs.msg import PointStamped
+        from nav_msgs.msg import OccupancyGrid
+        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+        from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
+        from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, RELIABLE_SENSOR_QOS
+        rng = np.random.default_rng(seed)
+        pubs = {
+            'cloud': self.node.create_publisher(PointCloud2, 'camera/depth/points', RELIABLE_SENSOR_QOS),
+            'rgb': self.node.create_publisher(Image, '/images/camera/rgb/image_raw', RELIABLE_SENSOR_QOS),
+            'depth': self.node.create_publisher(Image, '/images/camera/depth/image_raw', RELIABLE_SENSOR_QOS),
+            'info': self.node.create_publisher(CameraInfo, '/images/camera/rgb/camera_info', RELIABLE_SENSOR_QOS),
+            'occupancy': self.node.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS),
+            'noise': self.node.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS),
+            'model': self.node.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS),
+            'sdf': self.node.create_publisher(FloatGrid, 'ground_truth/sdf', LATCHED_QOS),
+            'com': self.node.create_publisher(PointStamped, 'ground_truth/center_of_mass', LATCHED_QOS),
+        }
+        makers = malformed_makers(self.last_model)
+        time.sleep(1.0)
+        sent = dict.fromkeys(pubs, 0)
+        rejected_before = self.log_count(r'\bignoring\b')
+        names = list(makers)
+        for k in range(count):
+            topic = names[k % len(names)]
+            pubs[topic].publish(makers[topic](rng))
+            sent[topic] += 1
+            if k % len(names) == len(names) - 1:
+                time.sleep(0.003)
+        time.sleep(3.0)
+        deaths = [n for n, p in self.procs.items() if p.poll() is not None]
+        self.figures['fuzz'] = {
+            'malformed_sent': count, 'per_input': sent,
+            'rejected_logged': self.log_count(r'\bignoring\b') - rejected_before,
+            'node_deaths': len(deaths), 'guard_exceptions': self.log_count(r'unexpected \w+'),
+            'memory_errors': self.log_count('MemoryError'),
+            'peak_rss_mb': {n: round(_peak_rss_mb(p.pid), 1) for n, p in self.procs.items()},
+        }
+        for pub in pubs.values():
+            self.node.destroy_publisher(pub)
+
+    # ------------------------------------------------------------------ 4. bad requests
+    def bad_requests(self, count: int) -> None:
+        from geometry_msgs.msg import PoseStamped
+
+        from gpis_grasp_interfaces.srv import ExecuteGrasp, GraspPlan
+        from gpis_grasp_ros.ros.nodes.common import SERVICE_QOS
+        plan_cli = self.plan_client()
+        exec_cli = self.node.create_client(ExecuteGrasp, 'execute_grasp', qos_profile=SERVICE_QOS)
+        exec_cli.wait_for_service(timeout_sec=20.0)
+        frame = self.last_model.header.frame_id if self.last_model is not None else ''
+        com = self.last_model.center_of_mass
+
+        def pose(x: float, y: float, qw: float = 1.0, frame_id: str = frame) -> PoseStamped:
+            p = PoseStamped()
+            p.header.frame_id = frame_id
+            p.pose.position.x, p.pose.position.y, p.pose.position.z = float(x), float(y), float(com.z)
+            p.pose.orientation.w = float(qw)
+            return p
+
+        nan = math.nan
+        x0, y0 = com.x, com.y
+        plans = [
+            GraspPlan.Request(method='gp-nonsense'), GraspPlan.Request(uncertainty_penalty=nan),
+            GraspPlan.Request(uncertainty_penalty=math.inf), GraspPlan.Request(uncertainty_penalty=1e6),
+            GraspPlan.Request(method='gp-gpis-opt', num_initial_grasps=10 ** 6),
+            GraspPlan.Request(method='gp-m', num_initial_grasps=10 ** 7), GraspPlan.Request(method='gp-gpis-opt!'),
+        ]
+        executes = [
+            ExecuteGrasp.Request(jaw1=pose(x0, y0), jaw2=pose(x0, y0)),
+            ExecuteGrasp.Request(jaw1=pose(nan, y0), jaw2=pose(x0 + 0.03, y0)),
+            ExecuteGrasp.Request(jaw1=pose(x0, nan), jaw2=pose(x0 + 0.03, y0)),
+            ExecuteGrasp.Request(jaw1=pose(x0 - 0.03, y0, qw=nan), jaw2=pose(x0 + 0.03, y0)),
+            ExecuteGrasp.Request(jaw1=pose(x0 - 0.03, y0), jaw2=pose(1e6, y0)),
+            ExecuteGrasp.Request(jaw1=pose(x0 - 0.03, y0), jaw2=pose(x0 + 0.03, y0), trials=10 ** 6),
+            ExecuteGrasp.Request(jaw1=pose(x0 - 0.03, y0, frame_id='elsewhere'), jaw2=pose(x0 + 0.03, y0)),
+            ExecuteGrasp.Request(jaw1=pose(x0 - 0.03, y0, qw=2.0), jaw2=pose(x0 + 0.03, y0)),
+        ]
+        answered = successes = with_reason = 0
+        for k in range(count):
+            if k % 2 == 0:
+                res, _ = self.call(plan_cli, plans[(k // 2) % len(plans)], timeout=30)
+            else:
+                res, _ = self.call(exec_cli, executes[(k // 2) % len(executes)], timeout=30)
+            if res is not None:
+                answered += 1
+                successes += int(res.success)
+                with_reason += int(not res.success and bool(res.message.strip()))
+        self.figures['bad_requests'] = {'sent': count, 'answered': answered, 'success_true': successes,
+                                        'false_with_reason': with_reason}
+
+    # ------------------------------------------------------------------ 5. load
+    def load(self, concurrent: int, clients: int, n_initial: int) -> None:
+        import rclpy
+
+        from gpis_grasp_interfaces.srv import GraspPlan
+        nodes = [rclpy.create_node(f'soak_client_{i}', context=self.context) for i in range(clients)]
+        for n in nodes:
+            self.executor.add_node(n)
+        clis = [self.plan_client(n) for n in nodes]
+        latencies: list[float] = []
+        messages: list[str] = []
+        lock = threading.Lock()
+        done = threading.Semaphore(0)
+        start = time.monotonic()
+        for k in range(concurrent):
+            sent = time.monotonic()
+            fut = clis[k % clients].call_async(GraspPlan.Request(method='gp-gpis-opt', num_initial_grasps=n_initial,
+                                                                 seed=k + 1))
+
+            def finished(f: Any, sent: float = sent) -> None:
+                with lock:
+                    latencies.append(time.monotonic() - sent)
+                    res = f.result()
+                    messages.append('ok' if res.success else res.message)
+                done.release()
+            fut.add_done_callback(finished)
+        deadline = time.monotonic() + 600
+        for _ in range(concurrent):
+            if not done.acquire(timeout=max(0.0, deadline - time.monotonic())):
+                break
+        elapsed = time.monotonic() - start
+        self.figures['load'] = {
+            'requests': concurrent, 'clients': clients, 'num_initial_grasps': n_initial,
+            'answered': len(latencies), 'answered_pct': 100.0 * len(latencies) / concurrent,
+            'planned_ok': messages.count('ok'),
+            'queue_full': sum('queue full' in m for m in messages),
+            'latency_p50_s': _percentile(latencies, 50), 'latency_p95_s': _percentile(latencies, 95),
+            'latency_max_s': max(latencies) if latencies else float('nan'),
+            'throughput_per_s': len(latencies) / elapsed if elapsed > 0 else float('nan'),
+        }
+
+    # ------------------------------------------------------------------ 6. timeout
+    def timeouts(self, slow: int = 5) -> None:
+        from gpis_grasp_interfaces.srv import GraspPlan
+        cli = self.plan_client()
+        ok_set = self.set_param('planner_node', 'planning_timeout', 0.1)
+        rows = []
+        for k in range(slow):
+            res, latency = self.call(cli, GraspPlan.Request(method='gp-gpis-opt', num_initial_grasps=500, seed=k + 1))
+            rows.append((res, latency))
+        timed_out = [r for r, _ in rows if r is not None and not r.success and 'planning_timeout' in r.message]
+        overshoot = [lat - 0.1 for r, lat in rows if r is not None]
+        # queue wait of the request right after a timeout = latency - its own planning time
+        res, latency = self.call(cli, GraspPlan.Request(method='gp-m', num_initial_grasps=20, seed=1))
+        next_wait = latency - (res.planning_time if res is not None and math.isfinite(res.planning_time) else 0.0)
+        self.set_param('planner_node', 'planning_timeout', 60.0)
+        self.figures['timeout'] = {
+            'set_at_run_time': ok_set, 'planning_timeout_s': 0.1, 'slow_requests': slow,
+            'answered_as_timeout': len(timed_out),
+            'latency_minus_timeout_s_max': max(overshoot) if overshoot else float('nan'),
+            'planning_time_reported_s_max': max((r.planning_time for r in timed_out), default=float('nan')),
+            'next_request_queue_wait_s': next_wait,
+        }
+
+    # ------------------------------------------------------------------ 7. shutdown
+    def shutdown(self) -> None:
+        from gpis_grasp_interfaces.srv import GraspPlan
+        cli = self.plan_client()
+        answer: dict[str, Any] = {}
+
+        def call() -> None:
+            res, _ = self.call(cli, GraspPlan.Request(method='gp-gpis-opt', num_initial_grasps=1000, seed=3), 30)
+            answer['res'] = res
+        caller = threading.Thread(target=call)
+        caller.start()
+        time.sleep(1.0)  # the plan is running
+        errors_before = {n: self.log_count(r'\[ERROR\]', [n]) for n in self.procs}
+        t0 = time.monotonic()
+        for p in self.procs.values():
+            p.send_signal(signal.SIGINT)
+        exit_s, codes = {}, {}
+        for name, p in self.procs.items():
+            try:
+                codes[name] = p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                codes[name] = None
+            exit_s[name] = round(time.monotonic() - t0, 2)
+        caller.join(timeout=10)
+        res = answer.get('res')
+        self.figures['shutdown'] = {
+            'exit_codes': codes, 'exit_after_s': exit_s,
+            'error_lines': {n: self.log_count(r'\[ERROR\]', [n]) - errors_before[n] for n in self.procs},
+            'in_flight_answer': None if res is None else res.message,
+        }
+
+
+# --------------------------------------------------------------------------- malformed messages
+def malformed_makers(model: Any) -> dict[str, Any]:
+    """A maker per input topic: rng → one malformed message (each breaks a size or value limit)."""
+    from geometry_msgs.msg import PointStamped
+    from nav_msgs.msg import OccupancyGrid
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+
+    from gpis_grasp_interfaces.msg import FloatGrid
+    big = [10 ** 5, 10 ** 6, 2 ** 31 - 1]
+
+    def cloud(rng):
+        m = PointCloud2()
+        m.fields = [PointField(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate('xyz')] + \
+            [PointField(name='rgb', offset=12, datatype=7, count=1)]
+        kind = int(rng.integers(4))
+        m.height, m.width, m.point_step = (int(rng.choice(big)), int(rng.choice(big)), 16) if kind == 0 else (4, 4, 16)
+        m.row_step = m.width * m.point_step
+        if kind == 1:
+            m.data = bytes(10)  # truncated
+        elif kind == 2:
+            m.point_step, m.row_step = 0, 0
+        elif kind == 3:  # points on a line: no camera geometry
+            pts = np.zeros((16, 4), np.float32)
+            pts[:, 2] = 1e30
+            m.data = pts.tobytes()
+        return m
+
+    def image(rng, depth: bool):
+        m = Image()
+        kind = int(rng.integers(4))
+        m.encoding = ('32FC1' if depth else 'rgb8') if kind != 0 else 'yuv422_weird'
+        m.height, m.width = (int(rng.choice(big)), int(rng.choice(big))) if kind == 1 else (4, 4)
+        m.step = m.width * (4 if depth else 3) if kind != 2 else 1
+        m.data = bytes(8)
+        return m
+
+    def info(rng):
+        m = CameraInfo()
+        m.width, m.height = 640, 480
+        kind = int(rng.integers(3))
+        fx = [1e-300, math.nan, -500.0][kind]
+        m.k = [fx, 0.0, 320.0, 0.0, 525.0, 240.0, 0.0, 0.0, 1.0]
+        return m
+
+    def meta(m, rng):
+        kind = int(rng.integers(5))
+        m.info.width, m.info.height = (int(rng.choice(big)), int(rng.choice(big))) if kind == 0 else (25, 25)
+        m.info.resolution = [0.005, 1e-30, 1e30, math.nan, 0.005][kind]
+        m.info.origin.orientation.w = math.nan if kind == 4 else 1.0
+        return m
+
+    def occupancy(rng):
+        m = meta(OccupancyGrid(), rng)
+        m.data = [0] * 7
+        return m
+
+    def float_grid(rng, unit: str):
+        m = meta(FloatGrid(), rng)
+        m.unit = unit
+        m.data = [math.nan] * 7
+        return m
+
+    def gpis_model(rng):
+        m = copy.deepcopy(model)
+        kind = int(rng.integers(6))
+        if kind == 0:
+            m.jitter = math.nan
+        elif kind == 1:
+            m.train_y = [1e300] * len(m.train_y)
+        elif kind == 2:
+            m.train_x = [1e6] * len(m.train_x)
+        elif kind == 3:
+            m.info.width, m.info.height, m.mean, m.variance = 100000, 100000, [], []
+        elif kind == 4:
+            m.info.origin.orientation.w = math.nan
+        else:
+            m.resolution, m.info.resolution = 1e30, 1e30
+        return m
+
+    def com(rng):
+        m = PointStamped()
+        m.point.x = [math.nan, math.inf, 1e300][int(rng.integers(3))]
+        return m
+
+    makers = {'cloud': cloud, 'rgb': lambda r: image(r, False), 'depth': lambda r: image(r, True), 'info': info,
+              'occupancy': occupancy, 'noise': lambda r: float_grid(r, 'm^2'), 'sdf': lambda r: float_grid(r, 'm'),
+              'com': com}
+    if model is not None:
+        makers['model'] = gpis_model
+    return makers
+
+
+def _same_plan(a: Any, b: Any) -> bool:
+    if a is None or b is None or not (a.success and b.success):
+        return False
+    key = ('x', 'y', 'z')
+    return all(getattr(a.jaw1.pose.position, k) == getattr(b.jaw1.pose.position, k) for k in key) and \
+        all(getattr(a.jaw2.pose.position, k) == getattr(b.jaw2.pose.position, k) for k in key) and \
+        a.probability_force_closure == b.probability_force_closure
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog='gpis-grasp soak', description=__doc__.split('\n\n')[0])
+    p.add_argument('--domain', type=int, default=17, help='ROS_DOMAIN_ID of the soak graph (default 17)')
+    p.add_argument('--bags', nargs='*', default=None, help='bags to replay (default: every bags/*.mcap)')
+    p.add_argument('--passes', type=int, default=10, help='one-shot replays per bag (default 10)')
+    p.add_argument('--malformed', type=int, default=10000, help='malformed messages (default 10000)')
+    p.add_argument('--bad-requests', type=int, default=500, help='degenerate requests (default 500)')
+    p.add_argument('--concurrent', type=int, default=100, help='concurrent plan_grasp requests (default 100)')
+    p.add_argument('--clients', type=int, default=5, help='client nodes sending them (default 5)')
+    p.add_argument('--num-initial-grasps', type=int, default=5, help='N_g of the load requests (default 5)')
+    p.add_argument('--json', default=None, help='also write the figures to this JSON file')
+    p.add_argument('--keep-logs', action='store_true', help='keep the node logs (their folder is printed)')
+    return p
+
+
+def _print(figures: dict[str, Any]) -> None:
+    for section, values in figures.items():
+        print(f'[{section}]')
+        for k, v in values.items():
+            if isinstance(v, float):
+                v = f'{v:.3f}'
+            print(f'  {k:<32} {v}')
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    bags = [Path(b) for b in args.bags] if args.bags else sorted((ROOT / 'bags').glob('*.mcap'))
+    workdir = Path(tempfile.mkdtemp(prefix='gpis-soak-'))
+    soak = Soak(args.domain, workdir)
+    t0 = time.monotonic()
+    try:
+        soak.start_nodes()
+        soak.replay(bags, args.passes)
+        if soak.last_model is None:
+            print('soak: no GPIS model after the replay; see ' + str(workdir), file=sys.stderr)
+            return 1
+        before = soak.plan_once()
+        soak.fuzz(args.malformed)
+        after = soak.plan_once()
+        soak.figures['fuzz']['plan_identical_before_after'] = _same_plan(before, after)
+        soak.bad_requests(args.bad_requests)
+        soak.load(args.concurrent, args.clients, args.num_initial_grasps)
+        soak.timeouts()
+        soak.shutdown()
+    finally:
+        soak.close()
+    soak.figures['total_s'] = {'wall_clock_s': time.monotonic() - t0}
+    _print(soak.figures)
+    if args.json:
+        Path(args.json).write_text(json.dumps(soak.figures, indent=2, default=str))
+    print(f'node logs: {workdir}' if args.keep_logs else '', end='\n' if args.keep_logs else '')
+    if not args.keep_logs:
+        for f in workdir.iterdir():
+            f.unlink()
+        workdir.rmdir()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
