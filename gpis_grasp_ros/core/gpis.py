@@ -1,4 +1,4 @@
-"""Gaussian process implicit surfaces (paper sections III-A and V-A).
+"""Gaussian process implicit surfaces with derivative observations (paper sections III-A, III-B and V-A).
 
 CONTRACT (other modules rely on it; extend, do not rename):
 
@@ -6,67 +6,87 @@ CONTRACT (other modules rely on it; extend, do not rename):
 
 * ``mean``       (H, W) float64, posterior mean signed distance mu (m), eq. 1
 * ``variance``   (H, W) float64, posterior marginal variance sigma^2 (m^2), eq. 2
-* ``gradient``   (H, W, 2) float64, d mu / dx and d mu / dy (dimensionless), kernel derivative
-* ``cov_factor`` (H*W, r) float64, L with joint posterior covariance Sigma ~= L L^T over the
-  row-major flattened grid; used by :meth:`GpisPosterior.sample`
+* ``gradient``   (H, W, 2) float64, d mu / dx and d mu / dy (dimensionless): the exact gradient of the
+  posterior mean (kernel derivatives), which with gradient observations is also the posterior mean
+  of the SDF gradient
+* ``cov_factor`` (H*W, r) float64, L with joint posterior covariance Sigma ~= L L^T of the SDF values
+  over the row-major flattened grid (r <= H*W); used by :meth:`GpisPosterior.sample`
 * ``params``     :class:`KernelParams` (C in m^2, l in m, constant prior mean in m)
-* training data: ``train_xy`` (n, 2) m, ``train_y`` (n,) m, ``train_noise`` (n,) m^2
+* value training data: ``train_xy`` (n, 2) m, ``train_y`` (n,) m, ``train_noise`` (n,) m^2
+* gradient training data: ``train_grad_xy`` (k, 2) m, ``train_grad_axis`` (k,) 0 = d/dx, 1 = d/dy,
+  ``train_grad`` (k,) and ``train_grad_noise`` (k,) dimensionless
+* ``hyperparameter_fit`` / ``bound_hits``: the maximum-likelihood search and the bounds it sits on
 
-Model (section III-A): f ~ GP(m, k), k(xi, xj) = C exp(-|xi - xj|^2 / (2 l^2)), observations
-y_i = f(x_i) + e_i with e_i ~ N(0, s_i^2), s_i^2 = ``train_noise[i]`` (the sensing noise map) plus
-``jitter``. The prior mean m is a constant, *negative* so that space without data leans to
-"object" (section III-B). Default m = -0.01 m: the interior depth of a tabletop object about
-2 cm wide; it is in metres and does not depend on the grid size M. C and l are set by maximum
-marginal likelihood (type-II ML, Rasmussen & Williams eq. 5.8/5.9) unless fixed.
+Model (section III-A). f ~ GP(m, k), k(xi, xj) = C exp(-|xi - xj|^2 / (2 l^2)). Section III builds
+a GPIS "augmented to predict the gradient of the SDF" (Solak et al., derivative observations): the
+GP is trained on SDF values y_i = f(x_i) + e_i, e_i ~ N(0, s_i^2) (s_i^2 = ``train_noise[i]``, the
+sensing noise map) AND on gradient components g_j = d f(z_j) / d x_a + e'_j, whose covariances are
+kernel derivatives: cov(f(x), d f(x') / d x'_a) = k (x_a - x'_a) / l^2 and cov(d f(x) / d x_a,
+d f(x') / d x'_b) = k (delta_ab / l^2 - (x_a - x'_a)(x_b - x'_b) / l^4). ``jitter`` is added to every
+noise variance. The prior mean m is a constant, *negative* so that space without data leans to
+"object" (section III-B); its gradient is 0. Default m = -0.01 m (interior depth of a ~2 cm wide
+tabletop object; metres, independent of M).
 
-Computation. On the grid the prior covariance of all H x W cells is the Kronecker product
-C (K_y (x) K_x) of two 1-D SE matrices (the SE kernel is separable), so its eigenpairs are
-products of 1-D eigenpairs: the prior is f = m + G w, w ~ N(0, I), with the Karhunen-Loeve
-basis G = sqrt(C) (U_y L_y^1/2 (x) U_x L_x^1/2) restricted to the r product modes whose
-eigenvalue is at least ``tol`` x the largest. Conditioning on the n observations is done in
-this weight space (Woodbury / Bayesian linear regression):
+Gradient observations (:func:`gradient_observations`, ``GpisParams.gradient_observations``): central
+differences of the EDT SDF at training cells whose two neighbours along the axis are training cells
+too (a missing neighbour has no measured distance). Noise variance per component (dimensionless):
+g0 + (1 - |g|)^2 + (s_-^2 + s_+^2) / (4 res^2) - g0 = 0.01 is the measured RMS error (~0.1) of
+central-difference EDT gradients of rasterised discs against the analytic gradient; (1 - |g|)^2 marks
+kinks (medial axis, corners), where an SDF has no gradient and |g| departs from 1; the last term is
+the sensing noise of the two differenced values.
+
+Computation. On the grid the prior of the values is the Kronecker product C (K_y (x) K_x) of two 1-D
+SE matrices (the SE kernel is separable). With gradient observations each axis uses the 1-D *joint*
+prior of values and scaled derivatives [f(x_i), l f'(x_i)] (2W x 2W, both blocks O(1)); its
+eigenpairs give mode values and mode derivatives at the cell centres, and products of the y and x
+modes represent values, d/dx (x derivative rows) and d/dy (y derivative rows) with the exact joint
+covariance. The prior is f = m + G w, w ~ N(0, I), over the r product modes above ``tol`` x the
+largest eigenvalue; conditioning on all N = n + k observations is done in weight space:
 
     P = I + G_X^T N^-1 G_X  (r x r, P >= I),   w_mean = P^-1 G_X^T N^-1 (y - m),
     alpha = (K + N)^-1 (y - m) = N^-1 (y - m - G_X w_mean),
-    mu(x*) = m + k(X, x*)^T alpha  (eq. 1),   grad mu(x*) = sum_i alpha_i d k(x*, x_i)/d x*
+    mu(x*) = m + sum_i alpha_i cov(f(x*), L_i f)  (eq. 1),  grad mu(x*) = its kernel derivative,
     Sigma = G P^-1 G^T = F F^T,  F = G L_P^-T  (``cov_factor``),   sigma^2 = diag(F F^T)  (eq. 2)
 
-with d k / d x* = -k (x* - x) / l^2 (section V-A) and mu, grad mu evaluated as separable
-products (H x n)(n x W). P is assembled from the Kronecker structure in O(H W |B|^2 + H |A|^2
-|B|^2) (A, B: row / column modes in use) instead of O(n r^2), and F by two GEMMs.
+with mu and grad mu as separable products (H x N)(N x W). P is assembled per observation type from
+the Kronecker structure in O(H W |B|^2 + H |A|^2 |B|^2) (A, B: row / column modes in use), F by two
+GEMMs; when r > H W (the joint basis on the exact path) F is compressed to H W columns by a QR
+factorisation (F F^T = R^T R), so sampling costs what it did without gradients.
 
-* **exact** (n <= ``max_exact_points``, default 2500): every mode above 1e-15 of the largest is
-  kept - the dropped ones are below the rounding error of the 1-D eigendecompositions - so
-  this is exact GP regression to rounding (checked against textbook dense GPR and
-  scikit-learn to ~1e-10 m). Because the SE spectrum decays like exp(-w^2 l^2 / 2), r is set
-  by the grid's extent in length scales rather than by n, so even the exact path costs
-  O(r^3) with r <= H W instead of O(n^3). Training inputs off the cell centres (possible in
-  :func:`posterior_from_data`) use a function-space Cholesky of K + N for mean and variance.
-* **reduced_rank** (n > ``max_exact_points``): the same algorithm with the looser
-  ``rank_tolerance`` (1e-10) and at most ``max_rank`` modes - a reduced-rank (truncated
-  Karhunen-Loeve) GP; ``truncation`` reports the dropped share of the prior variance. Its
-  error against the exact posterior is measured in ``bench_gpis`` (M = 25, 50 and 100 against
-  scikit-learn) and bounded in ``test_gpis``. r ~ 700 for object SDFs at any M, so M = 100
-  (10^4 cells) fits in well under a second and 1000 joint samples never form the 10^4 x 10^4
-  covariance (800 MB).
+* **exact** (n <= ``max_exact_points`` training cells, default 2500): every mode above 1e-15 of the
+  largest is kept, so this is exact GP regression to rounding (checked against a dense textbook
+  joint value/gradient GP to <= 1e-8 in ``test_gpis``, ~1e-12 measured). Training inputs off the
+  cell centres (possible in :func:`posterior_from_data`) use a function-space Cholesky of K + N
+  for mean and variance.
+* **reduced_rank** (n > ``max_exact_points``): the same algorithm with ``rank_tolerance`` (1e-10)
+  and at most ``max_rank`` modes - a truncated Karhunen-Loeve GP; ``truncation`` reports the
+  dropped share of the prior variance, ``bench_gpis`` its error.
 
-The joint covariance factor has r columns; P >= I needs no jitter (``jitter`` is still added to
-every noise variance, as the GpisModel message documents).
+Hyperparameters (section III-A: "set using maximum-likelihood estimation"). The negative log
+marginal likelihood of the joint observations and its analytic gradient in (log C, log l) are
+minimised with L-BFGS-B from a data-driven start (C = mean (y - m)^2, l = E/12) plus ``n_restarts``
+seeded log-uniform starts, on a seeded subset of at most ``max_opt_points`` observations (a random
+set of training cells with all their gradient components). Choices, each a documented default:
 
-Hyperparameters: the negative log marginal likelihood and its analytic gradient in
-(log C, log l) are minimised with L-BFGS-B within bounds proportional to the grid extent E
-(sqrt(C) in [E/1000, 2E], l in [E/25, E/12]), from a data-driven start (C = mean (y - m)^2,
-l = E/12) plus ``n_restarts`` seeded log-uniform starts, on a seeded random subset of at most
-``max_opt_points`` training points (subset-of-data for model selection; the posterior then uses
-all points). ``optimize_hyperparameters=False`` uses the given values or that same data-driven start.
+* Search band: only training cells with |SDF| <= ``search_band_cells`` (3) cells enter the search.
+  The shape lives there; the far-field EDT is a smooth cone/plane that makes up most of the grid and,
+  fitted with the rest, drove l to 4-21 cells on the shipped recordings (object-scale smoothing that
+  erased the nail B and the transparent knob F from the mean shape).
+* Bounds: l in [``length_scale_min_cells`` = 1 cell, ``length_scale_max_extent`` x E = E/6] and
+  sqrt(C) in [1e-3 E, 10 E] (E: grid extent). Below one cell the grid cannot resolve the length
+  scale. The upper bound E/6 (~4 cells at M = 25) keeps the paper's "missing = object" mechanism
+  (section III-B) working: inside an unobserved region the mean reverts to the negative prior
+  mean only over distances beyond ~l, and the shipped transparent knob F (an unobserved 4 x 5-cell
+  region) vanished from the mean shape at ML's unbounded l = 9.5 cells. It binds on A and F of
+  the 8 shipped bags (ML is interior on the other six). Being relative to E, the bounds do not
+  change with M.
+* A bound that binds is logged (warning, logger ``gpis_grasp_ros.core.gpis``) and listed in
+  ``posterior.bound_hits``. A likelihood evaluation whose K + N cannot be factorised is counted
+  (``HyperparameterFit.cholesky_failures``) and logged; L-BFGS-B sees a wall there (1e25), a start
+  without a likelihood is skipped and counted (``failed_starts``), and if every start fails the
+  start values are kept with ``ok = False`` and an error log.
 
-Upper bound on l (a documented choice): the SE posterior mean is a low-pass filter of the SDF
-at scale l, and an SDF has kinks along the medial axis; maximum likelihood on object SDFs
-prefers l ~ 3-6 cells at M = 25, which erased thin parts of the shipped recordings (the nail,
-2 cells wide, vanished from the mean shape - IoU with the true shape 0.0 instead of 0.5 - and
-the toy plane's IoU fell from ~0.8 to ~0.55). l <= E/12 (about 2 cells at M = 25, the paper's
-grid) keeps such parts, and makes the posterior more uncertain inside missing regions, as the
-paper intends. Being relative to E, the bound (and the Kronecker rank r) does not change with M.
+``optimize_hyperparameters=False`` uses the given values or the same data-driven start.
 """
 
 from __future__ import annotations
