@@ -611,6 +611,26 @@ def _check_target(target_px: np.ndarray, target_xy: np.ndarray, target_raster: n
 # ----------------------------------------------------------------------------------------------
 # grid accumulation and the noise map
 
+def _table_area_weights(foot_xy: np.ndarray, ray_xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Weight of each pixel in its cell: the table area its orthographic foot covers, relative to a table
+    pixel's (|det| of the Jacobian of the feet over (u, v), 5 x 5 mean, clipped to [0, 4]).
+
+    A wall facing the camera projects onto a line (weight ~0) and does not outweigh the top face and the
+    table in the cells it borders; holes (and pixels next to them) take the nominal weight 1."""
+    def area(xy: np.ndarray) -> np.ndarray:
+        xu, yu = np.gradient(xy[..., 0], axis=1), np.gradient(xy[..., 1], axis=1)
+        xv, yv = np.gradient(xy[..., 0], axis=0), np.gradient(xy[..., 1], axis=0)
+        return np.abs(xu * yv - yu * xv)
+
+    if min(foot_xy.shape[:2]) < 2:
+        return np.ones(foot_xy.shape[:2])
+    with np.errstate(invalid='ignore'):
+        nominal = area(ray_xy)
+        ratio = np.where(valid, area(foot_xy), np.nan) / nominal
+    ratio = np.where(np.isfinite(ratio), ratio, 1.0).astype(np.float32)
+    return np.clip(cv2.blur(ratio, (5, 5), borderType=cv2.BORDER_REPLICATE), 0.0, 4.0).astype(np.float64)
+
+
 def _accumulate(cell: np.ndarray, maps: list[np.ndarray], n_cells: int) -> list[np.ndarray]:
     """Per-cell sums of pixel maps (``cell`` = flat cell index, -1 = not in the grid)."""
     ok = cell >= 0
@@ -784,8 +804,9 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     cell = np.where(informative, np.nan_to_num(row) * m + np.nan_to_num(col), -1).astype(np.int64)
     valid_px = valid.astype(np.float64)
     occ_t = np.where(target_px, occ, 0.0)  # other objects are not the target: table in its grid
-    sums = _accumulate(cell, [np.ones((h, w)), occ_t, p_d * valid_px, p_c * valid_px, valid_px,
-                              miss_t.astype(np.float64), np.where(valid, var_z, 0.0)], m * m)
+    wt = _table_area_weights(foot_xy, table.to_table(hit_points)[0], valid)
+    sums = _accumulate(cell, [wt * v for v in (np.ones((h, w)), occ_t, p_d * valid_px, p_c * valid_px, valid_px,
+                                               miss_t.astype(np.float64), np.where(valid, var_z, 0.0))], m * m)
     n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var = (s.reshape(m, m) for s in sums)
 
     # cells between the feet of neighbouring pixels (a grid finer than the pixels' footprint on the
