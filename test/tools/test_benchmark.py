@@ -187,3 +187,40 @@ def test_cli_refuses_bags_with_the_same_name(tmp_path: Path) -> None:
     assert cli.main(['--bags', str(BAGS[0]), str(other), '--out', str(tmp_path / 'out'), '--quiet']) == 2
     assert cli.main(['--bags', str(BAGS[0]), '--methods', 'gp-m,gp-g', '--calibration', '--out',
                      str(tmp_path / 'out'), '--quiet']) == 2  # the calibration study needs GP-P
+
+
+def _rot(tilt_deg: float, yaw_deg: float) -> tuple[float, ...]:
+    t, y = np.radians(tilt_deg), np.radians(yaw_deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
+    return tuple((rx @ rz).ravel())
+
+
+def test_true_shape_maps_planning_grid_points_through_the_sensor_frame() -> None:
+    """Head camera: the truth grid and the planning grid share the table plane but not the in-plane axes."""
+    from gpis_grasp_ros.core.contacts import GripperParams
+    from gpis_grasp_ros.core.grid import GridGeometry
+
+    true_g = GridGeometry(-0.03, -0.06, 0.001, 120, 120, z=0.8, rotation=_rot(50, 5))
+    xy = true_g.cell_centers()
+    disc = np.hypot(xy[..., 0] - 0.03, xy[..., 1]) - 0.02  # disc of radius 2 cm at (3 cm, 0) of the true grid
+    centre = ev.TrueShape(disc, true_g, GridGeometry(0, 0, 0.005, 25, 25, z=0.8, rotation=_rot(50, 95))).to_plan(
+        np.array([0.03, 0.0]))
+    plan_g = GridGeometry(centre[0] - 0.0625, centre[1] - 0.0625, 0.005, 25, 25, z=0.8, rotation=_rot(50, 95))
+    truth = ev.TrueShape(disc, true_g, plan_g)
+    pts = np.random.default_rng(0).uniform(-0.05, 0.05, (20, 2))
+    assert np.allclose(truth.to_true(truth.to_plan(pts)), pts, atol=1e-12)
+    assert np.allclose(truth.com, [0.03, 0.0], atol=2e-4)
+    # A grasp across the disc centre, expressed in planning-grid coordinates.
+    j1, j2 = truth.to_plan(np.array([-0.01, 0.0])), truth.to_plan(np.array([0.07, 0.0]))
+    gripper = GripperParams(position_noise=0.002)
+    q, status = truth.nominal_quality(j1, j2, gripper)
+    assert status == 'ok' and q > 0
+    assert truth.execute(j1, j2, gripper, 20, np.random.default_rng(1)) == 20
+    # The same numbers read as if both grids were one frame would miss the disc entirely.
+    same_frame = ev.TrueShape(disc, true_g)
+    assert same_frame.nominal_quality(j1, j2, gripper)[1] != 'ok'
+    assert truth.iou_on(plan_g, truth.values_at(plan_g.cell_centers())) == pytest.approx(1.0)
+    assert truth.iou_on(plan_g, np.hypot(*(plan_g.cell_centers() - centre).T) - 0.02) > 0.9
+    outline = np.concatenate(truth.outline())
+    assert np.allclose(np.hypot(*(truth.to_true(outline) - [0.03, 0.0]).T), 0.02, atol=0.0015)

@@ -56,13 +56,12 @@ from typing import Any
 
 import numpy as np
 
-from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, bilinear, find_contacts, perturb_grasps
+from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, find_contacts, perturb_grasps
 from gpis_grasp_ros.core.gpis import GpisPosterior, center_of_mass
 from gpis_grasp_ros.core.planners import (
     MeanGraspObjective,
     PlannerParams,
     PlanningContext,
-    execute_grasp_trials,
     sample_heuristic_grasps,
 )
 from gpis_grasp_ros.core.quality import ShapeSamples, draw_shape_samples, grasp_quality, probability_force_closure
@@ -240,9 +239,9 @@ def perturbation_pf(ctx: PlanningContext, bank: SdfBank, jaw1: np.ndarray, jaw2:
     return out
 
 
-def true_shape_bank(true_sdf: np.ndarray, true_geometry: Any, geometry: Any) -> SdfBank:
+def true_shape_bank(truth: Any, geometry: Any) -> SdfBank:
     """The true SDF (m) bilinearly resampled at the planning grid's cell centres, as a one-grid bank."""
-    return SdfBank(bilinear(true_sdf, true_geometry, geometry.cell_centers())[None], geometry)
+    return SdfBank(truth.values_at(geometry.cell_centers())[None], geometry)
 
 
 def inflated_shape_samples(posterior: GpisPosterior, n: int, factor: float, rng: np.random.Generator,
@@ -254,10 +253,13 @@ def inflated_shape_samples(posterior: GpisPosterior, n: int, factor: float, rng:
     return ShapeSamples(SdfBank(sdfs, posterior.geometry), center_of_mass(sdfs, posterior.geometry), eps, rho)
 
 
-def gp_z_scores(posterior: GpisPosterior, true_sdf: np.ndarray, true_geometry: Any) -> dict[str, float]:
-    """RMS of z = (sdf_true − μ) / σ at the planning cells, all cells and near the true surface, and 95 % coverage."""
+def gp_z_scores(posterior: GpisPosterior, true_shape: Any) -> dict[str, float]:
+    """RMS of z = (sdf_true − μ) / σ at the planning cells, all cells and near the true surface, and 95 % coverage.
+
+    ``true_shape`` provides ``values_at(xy)``: the true SDF (m) at planning-grid points.
+    """
     g = posterior.geometry
-    truth = bilinear(true_sdf, true_geometry, g.cell_centers())
+    truth = true_shape.values_at(g.cell_centers())
     sd = np.sqrt(np.maximum(np.asarray(posterior.variance, dtype=np.float64), 1e-30))
     z = (truth - np.asarray(posterior.mean)) / sd
     near = np.abs(truth) < 2.0 * g.resolution
@@ -271,14 +273,16 @@ def gp_z_scores(posterior: GpisPosterior, true_sdf: np.ndarray, true_geometry: A
             'gp_sd_near_surface_cells': float(np.mean(sd[near]) / g.resolution) if near.any() else float('nan')}
 
 
-def calibrate_object(posterior: GpisPosterior, true_sdf: np.ndarray, true_geometry: Any,
-                     true_com: np.ndarray | None, planned: Sequence[dict[str, Any]], params: PlannerParams,
+def calibrate_object(posterior: GpisPosterior, truth: Any, planned: Sequence[dict[str, Any]], params: PlannerParams,
                      n_candidates: int, trials: int, n_perturbations: int, seed: int,
                      object_name: str = '') -> tuple[list[dict[str, Any]], dict[str, float]]:
-    """Predictions and simulated outcomes of the planned grasps and ``n_candidates`` GP-P candidates.
+    """Predictions and simulated outcomes of the planned grasps and ``n_candidates`` candidate grasps.
 
-    ``planned``: dicts with ``method``, ``seed``, ``jaw1``, ``jaw2`` (m) and ``p_f`` (the planner's
-    reported P_F). Returns the rows (one per grasp) and the object's GP z-score diagnostics.
+    ``truth``: the ground truth (:class:`~gpis_grasp_ros.tools.benchmark.evaluation.TrueShape`:
+    ``values_at(xy)`` true SDF at planning-grid points, ``execute(jaw1, jaw2, gripper, trials, rng)``
+    simulated executions of a planning-grid grasp). ``planned``: dicts with ``method``, ``seed``,
+    ``jaw1``, ``jaw2`` (m) and ``p_f`` (the planner's reported P_F). Returns the rows (one per
+    grasp) and the object's GP z-score diagnostics.
     """
     if trials < 1:
         raise ValueError('the calibration study needs at least one execution per grasp')
@@ -311,7 +315,7 @@ def calibrate_object(posterior: GpisPosterior, true_sdf: np.ndarray, true_geomet
     g = ctx.geometry
     x = np.concatenate([g.to_cell(jaw1), g.to_cell(jaw2)], axis=1)
     p_smooth = np.asarray(objective.details(x)['pf_smoothed'], dtype=np.float64) if x.shape[0] else np.zeros(0)
-    z_info = gp_z_scores(posterior, true_sdf, true_geometry)
+    z_info = gp_z_scores(posterior, truth)
     inflation = float(np.clip(z_info['gp_z_rms_near_surface'], 1.0, 20.0)) if math.isfinite(
         z_info['gp_z_rms_near_surface']) else 1.0
     z_info['sigma_inflation'] = inflation
@@ -319,15 +323,14 @@ def calibrate_object(posterior: GpisPosterior, true_sdf: np.ndarray, true_geomet
         jaw1, jaw2, inflated_shape_samples(posterior, params.n_shape_samples, inflation, rng_inflate, ctx.rho),
         ctx.gripper, ctx.sigma_g).p
     eps_true = rng_true.standard_normal((n_perturbations, 2, 2))
-    p_true = perturbation_pf(ctx, true_shape_bank(true_sdf, true_geometry, g), jaw1, jaw2, eps_true)
+    p_true = perturbation_pf(ctx, true_shape_bank(truth, g), jaw1, jaw2, eps_true)
     q_mean = ctx.mean_quality(jaw1, jaw2)
 
     exec_gripper: GripperParams = params.gripper.resolved(g)
     exec_seeds = rng_exec.integers(0, 2 ** 63 - 1, size=jaw1.shape[0])
     rows = []
     for i in range(jaw1.shape[0]):
-        succ = execute_grasp_trials(true_sdf, true_geometry, jaw1[i], jaw2[i], exec_gripper, trials,
-                                    np.random.default_rng(int(exec_seeds[i])), center_of_mass=true_com)
+        succ = truth.execute(jaw1[i], jaw2[i], exec_gripper, trials, np.random.default_rng(int(exec_seeds[i])))
         kind, seed_i, reported = kinds[i]
         rows.append({
             'object': object_name, 'kind': 'candidate' if kind == 'candidate' else 'planned', 'method': kind,

@@ -158,18 +158,45 @@ def default_bags() -> list[Path]:
 
 
 class TrueShape:
-    """Ground truth of a bag prepared for Q_N: SDF bank (m), centre of mass (m) and ρ (m)."""
+    """Ground truth of a bag prepared for evaluation: SDF bank (m), centre of mass (m) and ρ (m).
 
-    def __init__(self, sdf: np.ndarray, geometry: GridGeometry, center_of_mass: np.ndarray | None) -> None:
+    **Frames.** The true SDF lives on its own grid (``geometry``, 1 mm, in the table frame of the
+    simulator), the planner's jaws on the planning grid (``plan_geometry``, the table frame fitted
+    by segmentation). With a tilted head camera the two differ by a rigid motion, so every point
+    goes planning grid → sensor frame → true grid (:meth:`to_true`), as ``gripper_sim_node`` does;
+    for the top-down bags this is the identity to ~1e-5 m. The centre of mass is that of
+    {sdf_true < 0} in the true grid's frame (uniform density; the bag's
+    ``ground_truth/center_of_mass`` message is in the camera frame).
+    """
+
+    def __init__(self, sdf: np.ndarray, geometry: GridGeometry, plan_geometry: GridGeometry | None = None) -> None:
         self.sdf = np.asarray(sdf, dtype=np.float64)
         self.geometry = geometry
-        self.com = (center_of_mass(self.sdf[None], geometry)[0] if center_of_mass is None
-                    else np.asarray(center_of_mass, dtype=np.float64).reshape(2))
+        self.plan_geometry = plan_geometry
+        self.com = center_of_mass(self.sdf[None], geometry)[0]
         self.rho = torque_scale(self.sdf, geometry, self.com)
         self.bank = SdfBank(self.sdf, geometry)
 
+    def to_true(self, xy: np.ndarray) -> np.ndarray:
+        """Planning-grid points ``(..., 2)`` (m) → the true grid's (x, y) (m), through the sensor frame."""
+        xy = np.asarray(xy, dtype=np.float64)
+        if self.plan_geometry is None:
+            return xy
+        return self.geometry.from_sensor(self.plan_geometry.to_sensor(xy, 0.0))[0]
+
+    def to_plan(self, xy: np.ndarray) -> np.ndarray:
+        """True-grid points ``(..., 2)`` (m) → planning-grid (x, y) (m)."""
+        xy = np.asarray(xy, dtype=np.float64)
+        if self.plan_geometry is None:
+            return xy
+        return self.plan_geometry.from_sensor(self.geometry.to_sensor(xy, 0.0))[0]
+
+    def values_at(self, xy_plan: np.ndarray) -> np.ndarray:
+        """True SDF (m) at planning-grid points ``(..., 2)``."""
+        return bilinear(self.sdf, self.geometry, self.to_true(xy_plan))
+
     def nominal_quality(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams) -> tuple[float, str]:
-        """Q_N: Ferrari–Canny L1 of the unperturbed grasp (m) on the true shape, and a status.
+        """Q_N: Ferrari–Canny L1 of the unperturbed grasp (planning-grid m) on the true shape, and a status.
 
         Status 'ok' (Q_N may still be <= 0: no force closure), else 'no_contact', 'start_inside'
         or 'opening_exceeded' with Q_N = NaN.
@@ -178,22 +205,29 @@ class TrueShape:
         j2 = np.asarray(jaw2, dtype=np.float64).reshape(1, 2)
         if not (np.all(np.isfinite(j1)) and np.all(np.isfinite(j2))):
             return float('nan'), 'no_grasp'
-        con = find_contacts(self.bank, j1, j2, gripper)
+        con = find_contacts(self.bank, self.to_true(j1), self.to_true(j2), gripper)
         for name in ('opening_exceeded', 'start_inside', 'no_contact'):
             if bool(getattr(con, name)[0]):
                 return float('nan'), name
         q = ferrari_canny_l1(con.c1, con.c2, con.n1, con.n2, self.com, gripper.friction_coef, self.rho)
         return float(q[0]), 'ok'
 
+    def execute(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams, trials: int,
+                rng: np.random.Generator) -> int:
+        """Successes of ``trials`` simulated executions (:func:`execute_grasp_trials`) of a planning-grid grasp."""
+        return execute_grasp_trials(self.sdf, self.geometry, self.to_true(jaw1), self.to_true(jaw2), gripper, trials,
+                                    rng, center_of_mass=self.com)
+
     def outline(self) -> list[np.ndarray]:
-        """Boundary polylines of {sdf < 0} in metres (outer outlines and holes)."""
+        """Boundary polylines of {sdf < 0} in planning-grid metres (outer outlines and holes)."""
         mask = (self.sdf < 0).astype(np.uint8)
         contours, _ = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
-        return [self.geometry.to_metric(c.reshape(-1, 2).astype(np.float64)) for c in contours if len(c) >= 3]
+        return [self.to_plan(self.geometry.to_metric(c.reshape(-1, 2).astype(np.float64)))
+                for c in contours if len(c) >= 3]
 
     def iou_on(self, geometry: GridGeometry, mean_sdf: np.ndarray) -> float:
         """IoU of {mean_sdf < 0} with the true shape sampled at the cell centres of ``geometry``."""
-        true_inside = bilinear(self.sdf, self.geometry, geometry.cell_centers()) < 0
+        true_inside = self.values_at(geometry.cell_centers()) < 0
         mean_inside = np.asarray(mean_sdf) < 0
         union = np.count_nonzero(true_inside | mean_inside)
         return float(np.count_nonzero(true_inside & mean_inside) / union) if union else float('nan')
@@ -361,7 +395,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
     posterior = posterior_from_grids(occ, noise, geometry)
     t2 = time.perf_counter()
     res = geometry.resolution
-    truth = (TrueShape(scene.true_sdf, scene.true_geometry, scene.true_center_of_mass)
+    truth = (TrueShape(scene.true_sdf, scene.true_geometry, geometry)
              if scene.true_sdf is not None and scene.true_geometry is not None else None)
     com_rms, com_p95 = com_statistics(posterior, s.com_samples, np.random.default_rng(derive_seed('com', name)))
     info: dict[str, Any] = {
@@ -398,8 +432,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
             if truth is not None and r.success:
                 q_n, status = truth.nominal_quality(r.jaw1, r.jaw2, exec_gripper)
                 gripper_seed = derive_seed('gripper', seed, name)
-                succ = execute_grasp_trials(truth.sdf, truth.geometry, r.jaw1, r.jaw2, exec_gripper, s.trials,
-                                            np.random.default_rng(gripper_seed), center_of_mass=truth.com)
+                succ = truth.execute(r.jaw1, r.jaw2, exec_gripper, s.trials, np.random.default_rng(gripper_seed))
             else:
                 q_n, status, succ = float('nan'), 'no_grasp' if truth is not None else 'no_ground_truth', 0
             row.update({'q_n': q_n, 'q_n_status': status, 'sim_successes': int(succ), 'sim_trials': s.trials,
@@ -418,7 +451,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
         planned = [{'method': r['method'], 'seed': r['seed'], 'jaw1': (r['jaw1_x'], r['jaw1_y']),
                     'jaw2': (r['jaw2_x'], r['jaw2_y']), 'p_f': r['p_f']} for r in rows if r['success']]
         calibration_rows, z_info = calibrate_object(
-            posterior, truth.sdf, truth.geometry, truth.com, planned, s.planner_params(METHOD_BY_KEY['gp-p']),
+            posterior, truth, planned, s.planner_params(METHOD_BY_KEY['gp-p']),
             s.calibration_candidates, s.calibration_trials, s.calibration_perturbations,
             derive_seed('calibration', name), object_name=name)
         for row in calibration_rows:

@@ -149,9 +149,11 @@ def on_uncertain(points_m: np.ndarray, regions: Sequence[MaterialRegion], tol: f
 
 def describe_grasp(truth: TrueShape, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Any,
                    regions: Sequence[MaterialRegion] = ()) -> dict[str, Any]:
-    """Parts under the two contacts (true shape, unperturbed grasp), the closing line's angle to the
-    fuselage, and how many contacts lie on the pattern's unobserved regions."""
-    con = find_contacts(truth.bank, np.asarray(jaw1)[None], np.asarray(jaw2)[None], gripper)
+    """Parts under the two contacts (true shape, unperturbed grasp in planning-grid m), the closing line's
+    angle to the fuselage, and how many contacts lie on the pattern's unobserved regions (the true grid of
+    the top-down scenes is the scene's table frame)."""
+    con = find_contacts(truth.bank, truth.to_true(np.asarray(jaw1)[None]), truth.to_true(np.asarray(jaw2)[None]),
+                        gripper)
     if not bool(con.valid[0]):
         return {'parts': ('none', 'none'), 'angle_deg': float('nan'), 'on_uncertain': -1}
     c1, c2 = scene_to_plane(con.c1[0]), scene_to_plane(con.c2[0])
@@ -176,7 +178,7 @@ def run_fig5(out_dir: str | Path, settings: BenchmarkSettings, workers: int = 1,
     summary = []
     for (key, title, paper, expected), o, bag in zip(PATTERNS, result.objects, bags, strict=True):
         scene = load_bag(bag)
-        truth = TrueShape(scene.true_sdf, scene.true_geometry, scene.true_center_of_mass)
+        truth = TrueShape(scene.true_sdf, scene.true_geometry, o.geometry)
         gripper = s.planner_params(METHOD_BY_KEY['gp-g']).gripper.resolved(o.geometry)
         seeds = []
         for r in (r for r in o.rows if r['method'] == 'gp-g'):
