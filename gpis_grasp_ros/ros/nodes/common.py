@@ -287,6 +287,12 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads
         stop.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    if {signal.SIGINT, signal.SIGTERM} <= signal.pthread_sigmask(signal.SIG_BLOCK, []):
+        # blocked in every thread (see gpis_grasp_ros.ros.nodes): take them here, no handler can swallow them
+        def wait_signal() -> None:
+            signal.sigwait({signal.SIGINT, signal.SIGTERM})
+            stop.set()
+        threading.Thread(target=wait_signal, name='signals', daemon=True).start()
     node = None
     executor = None
     spinner = None
