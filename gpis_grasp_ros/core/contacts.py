@@ -11,30 +11,34 @@ crossing of the SDF ``f`` met by the jaw while it travels toward the other jaw.
 Choices where the paper is silent (documented here, relied on by :mod:`quality` and :mod:`planners`):
 
 * **Jaw width.** The jaw face (width ``w_j``, perpendicular to the closing direction) is
-  represented by parallel march lines spread evenly across the face, at most
-  ``face_line_spacing_cells`` (1) grid cell apart, so a feature one cell wide cannot slip between
-  two lines (:meth:`GripperParams.face_offsets`). Both jaws travel on the same lines (ĝ2 lies on
-  the line through ĝ1 along the closing direction), so each line is sampled once and searched
-  from both ends. The first contact anywhere across the face wins.
+  represented by parallel face lines spread evenly across the face, at most
+  ``face_line_spacing_cells`` (0.25) grid cell apart (:meth:`GripperParams.face_offsets`).
+  Both jaws travel on the same lines (ĝ2 lies on the line through ĝ1 along the closing
+  direction), so each line is searched once from both ends. The first contact anywhere across the
+  face wins. 0.25 cell is where P_F stops depending on the spacing: on the shipped bags halving it
+  moves P_F of the planned grasps by at most 0.004 (< 1 standard error at S = 1000), while 1-cell
+  lines had moved it by up to 0.09 (``test/core/test_contact_refinement.py``).
 * **Contact patch.** A rigid flat jaw meeting a flat face touches along a segment, not at the
   corner line that happens to cross first. Lines whose crossing lies within
   ``contact_patch_cells`` (0.5 cell; or ``contact_patch`` in m, which :meth:`GripperParams.resolved`
   fixes from the planning grid so executions on a finer true grid model the same jaw) of the
   first touch form the patch, weighted by a linear
-  ramp (1 at the first touch, 0 at the tolerance); the contact is the patch centre. A spike
+  ramp (1 at the first touch, 0 at the tolerance) times the trapezoid weight of the line (½ for
+  the two edge lines, which stand for half a spacing); the contact is the patch centre. A spike
   hit by one edge line is still the contact (nothing else is within the tolerance), a flat face
   gives the centre of the jaw, and the contact moves continuously with the jaws (needed for
   finite differences).
-* **Marching.** Each line is cut into ``n = ceil(L / march_step_cells)`` equal steps (default
-  step 1 cell; a trial's samples never depend on the rest of the batch) and the SDF grid is
-  interpolated bilinearly. The bracket around the first sign change (last sample with
-  ``f > 0``, first with ``f <= 0``) is halved once with a mid-point evaluation and the
-  crossing placed by linear interpolation in the final half-cell bracket: sub-cell accuracy
-  (a few hundredths of a cell on an exact disc SDF, see ``test_contacts.py``). Features
-  thinner than about a cell *along* the closing line may be stepped over — the GPIS grid does not
-  resolve them either. Outside the grid the SDF is extrapolated as ``f(nearest node) +
-  distance`` (the grid border is free space and a distance grows at most by the distance
-  travelled), so jaws may start off the grid.
+* **Exact crossings** (``exact_crossings``, default). Each face line is cut where it crosses a
+  grid line; inside a cell the bilinear SDF restricted to the line is a quadratic, so the first
+  zero crossing seen from each jaw is found in closed form — sub-cell exact, with no sampling step
+  that a sliver of the object (common in GP shape samples) could slip through. The march step
+  ``march_step_cells`` no longer matters for lines on the (padded) grid. Outside the grid the SDF
+  is extrapolated as ``f(nearest node) + distance`` (the grid border is free space and a distance
+  grows at most by the distance travelled), so jaws may start off the grid; lines that leave the
+  padded grid, and ``exact_crossings=False``, use the sampled march: ``n = ceil(L /
+  march_step_cells)`` equal steps, the bracket around the first sign change halved once and the
+  crossing placed by linear interpolation. The old default (1-cell step and 1-cell face lines)
+  biased P_F upward by up to several standard errors (issue 11, item 6).
 * **Normals.** Outward normals are the normalised SDF gradient, bilinearly interpolated at the
   contact. For the GPIS mean the gradient is the posterior's analytic ``gradient`` (paper V-A:
   ``n = ∇μ/‖∇μ‖``); for a Monte-Carlo *sample* f the normal must come from f itself (the surface
@@ -92,10 +96,11 @@ class GripperParams:
     friction_coef: float = 0.5  # γ, dimensionless
     position_noise: float | None = None  # σ_g, m; None -> position_noise_cells * resolution
     position_noise_cells: float = 0.5  # σ_g in cells of the planning grid (paper: σ_g² = 0.25)
-    march_step_cells: float = 1.0  # sampling step along the closing line, cells
-    face_line_spacing_cells: float = 1.0  # max spacing of the march lines across a jaw face, cells
+    march_step_cells: float = 1.0  # sampling step of the sampled march (off-grid lines / exact_crossings=False)
+    face_line_spacing_cells: float = 0.25  # max spacing of the face lines across a jaw face, cells
     contact_patch_cells: float = 0.5  # lines touching within this distance of the first touch form the patch
     contact_patch: float | None = None  # the same tolerance in m; None -> contact_patch_cells * resolution
+    exact_crossings: bool = True  # exact zero crossings of the bilinear SDF (False: sampled march, step above)
 
     def __post_init__(self) -> None:
         if not self.jaw_width >= 0:
@@ -461,7 +466,10 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     # on the other trials of the batch; shorter lines repeat their end point up to the longest.
     n_seg = np.maximum(np.ceil(length / gripper.march_step_cells - 1e-9), 1.0)
     n_steps = int(n_seg.max(initial=1.0)) + 1
-    chunk = max(1, MAX_POINTS_PER_CHUNK // (n_lines * n_steps))
+    # exact crossings: one segment per grid line crossed (at most (|u_x| + |u_y|) L + 3 per line)
+    n_work = int(math.ceil(math.sqrt(2.0) * float(length.max(initial=0.0)))) + 3 if gripper.exact_crossings \
+        else n_steps
+    chunk = max(1, MAX_POINTS_PER_CHUNK // (n_lines * n_work))
 
     if t_total == 0:
         e2, e1 = np.zeros((0, 2)), np.zeros(0)
@@ -471,7 +479,8 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
                         start_inside=none.reshape(lead), opening_exceeded=none.reshape(lead), width=e1.reshape(lead),
                         clearance1=e1.reshape(lead), clearance2=e1.reshape(lead), no_normal=none.reshape(lead))
     parts = [_march_chunk(bank, a[s:s + chunk], unit[s:s + chunk], length[s:s + chunk], n_seg[s:s + chunk],
-                          offsets, n_steps, None if idx is None else idx[s:s + chunk], gripper.patch_cells(g))
+                          offsets, n_steps, None if idx is None else idx[s:s + chunk], gripper.patch_cells(g),
+                          gripper.exact_crossings)
              for s in range(0, t_total, chunk)]
     if len(parts) == 1:
         c, no_contact, inside, clear = parts[0]
@@ -522,28 +531,108 @@ def _over_lines(op: np.ufunc, x: np.ndarray) -> np.ndarray:
     return out
 
 
-def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray, n_seg: np.ndarray,
-                 offsets: np.ndarray, n_steps: int, idx: np.ndarray | None, patch_tol: float):
-    """March one chunk of T trials along L face lines with N samples each (all in cell units).
+def _exact_crossings(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.ndarray, length: np.ndarray,
+                     idx: np.ndarray | None):
+    """Exact first and last zero crossings of the bilinear SDF along T x L lines (cell units).
 
-    Returns contact points (2, T, 2) in cells for jaw 1 and jaw 2, the no-contact and
-    start-inside flags (T,) and the clearances (2, T) (m) of both jaw faces.
+    Lines start at (ox, oy) (T, L) (unpadded cell coordinates, all on the padded grid), run along
+    ``unit`` (T, 2) for ``length`` (T,) cells. Each line is cut where it crosses a grid line;
+    inside a cell the bilinear interpolant restricted to the line is a quadratic
+    ``c0 + c1 τ + c2 τ²``, whose smallest (largest) root in the first (last) segment that reaches
+    f <= 0 is the crossing seen from jaw 1 (jaw 2). No sampling step: a sliver of the object
+    thinner than any step is still found. Returns ``t_first, t_last, has, f_start, f_end`` (T, L):
+    crossing positions along the line (cells), whether the line meets f <= 0, and f (m) at both ends.
     """
-    n_t = a.shape[0]
-    n_lines = offsets.size
-    perp = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
-    # Line origins (T, L) and samples (T, L, N) in cells.
-    ox = a[:, 0, None] + offsets * perp[:, 0, None]
-    oy = a[:, 1, None] + offsets * perp[:, 1, None]
-    dt = (length / n_seg)[:, None]
-    # All samples lie in the box spanned by both jaw faces (conservative bound).
-    reach = float(np.abs(offsets).max())
-    b = a + length[:, None] * unit
-    lo = np.minimum(a, b).min(axis=0) - reach
-    hi = np.maximum(a, b).max(axis=0) + reach
+    n_t, n_l = ox.shape
     pad = bank.pad
-    on_padded = bool(lo.min() >= -pad and hi[0] <= bank.geometry.width - 1 + pad
-                     and hi[1] <= bank.geometry.height - 1 + pad)
+    ux64, uy64 = unit[:, 0, None, None], unit[:, 1, None, None]
+    px0 = (ox + pad)[..., None]
+    py0 = (oy + pad)[..., None]
+    lmax = float(length.max(initial=0.0))
+    len3 = length[:, None, None]
+    # Breakpoints: both ends and every grid line crossed (a superset is harmless).
+    breaks = [np.zeros((n_t, n_l, 1)), np.broadcast_to(len3, (n_t, n_l, 1))]
+    for p0, u in ((px0, ux64), (py0, uy64)):
+        k = int(math.ceil(lmax * float(np.abs(u).max(initial=0.0)))) + 1
+        au = np.abs(u)
+        first = np.where(u >= 0, np.floor(p0) + 1.0 - p0, p0 - np.ceil(p0) + 1.0)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            tk = (first + np.arange(k)) / np.where(au > 1e-12, au, np.nan)
+        breaks.append(np.fmin(tk, len3))  # NaN (line parallel to the axis) -> the end point
+    t = np.sort(np.concatenate(breaks, axis=2), axis=2).astype(np.float32)  # (T, L, S + 1)
+    t0 = t[..., :-1]
+    dseg = t[..., 1:] - t0
+    ux = unit[:, 0].astype(np.float32)[:, None, None]
+    uy = unit[:, 1].astype(np.float32)[:, None, None]
+    px = px0.astype(np.float32)
+    py = py0.astype(np.float32)
+    # cell of each segment (its midpoint), clamped to the padded grid's cells
+    tm = t0 + 0.5 * dseg
+    cu = np.floor(px + tm * ux)
+    cv = np.floor(py + tm * uy)
+    np.clip(cu, 0, bank._pw - 1, out=cu)
+    np.clip(cv, 0, bank._ph - 1, out=cv)
+    flat = (cv * bank._pw + cu).astype(np.intp)
+    if idx is not None:
+        flat += (np.asarray(idx, dtype=np.intp) * bank._cells_padded)[:, None, None]
+    rec = _gather4(bank._coef_rec, flat, bank._coef_dtype, 'exact')
+    k0, k1, k2, k3 = rec[..., 0], rec[..., 1], rec[..., 2], rec[..., 3]
+    fa = px + t0 * ux - cu  # fractional position in the cell at the segment start
+    fb = py + t0 * uy - cv
+    # f(τ) = c0 + c1 τ + c2 τ² on the segment, τ ∈ [0, dseg]
+    c0 = k0 + k1 * fa + fb * (k2 + k3 * fa)
+    c1 = k1 * ux + k2 * uy + k3 * (fa * uy + fb * ux)
+    c2 = k3 * (ux * uy)
+    # a segment reaches f <= 0 at its start, or dips below 0 at an interior vertex (the end is the
+    # next segment's start: continuity of the bilinear interpolant)
+    hit = c0 <= 0
+    hit |= (c2 > 0) & (c1 < 0) & (-c1 < 2.0 * c2 * dseg) & (4.0 * c0 * c2 < c1 * c1)
+    n_s = hit.shape[2]
+    last_seg = n_s - 1
+    f_stop = (c0[..., last_seg] + dseg[..., last_seg] * (c1[..., last_seg] + c2[..., last_seg] * dseg[..., last_seg])
+              ).astype(np.float64)
+    hit[..., last_seg] |= f_stop <= 0
+    has = hit.any(axis=2)
+    j_first = np.argmax(hit, axis=2)[..., None]
+    # entered f <= 0 at the start of segment j: the crossing lies in segment j - 1 (whose end is inside)
+    entered = (np.take_along_axis(c0, j_first, 2) <= 0) & (j_first > 0)
+    j_first -= entered
+    j_last = (last_seg - np.argmax(hit[..., ::-1], axis=2))[..., None]
+
+    def root(j: np.ndarray, largest: bool) -> np.ndarray:
+        q0, q1, q2, dd, ts = (np.take_along_axis(arr, j, 2)[..., 0].astype(np.float64)
+                              for arr in (c0, c1, c2, dseg, t0))
+        sq = np.sqrt(np.maximum(q1 * q1 - 4.0 * q2 * q0, 0.0))
+        qq = -0.5 * (q1 + np.where(q1 >= 0, sq, -sq))
+        with np.errstate(divide='ignore', invalid='ignore'):
+            r1 = np.where(np.abs(q2) > 1e-15, qq / q2, np.nan)
+            r2 = np.where(qq != 0, q0 / qq, np.nan)
+        tol = 1e-6 + 1e-6 * dd
+        cands = np.stack([r1, r2])
+        ok = np.isfinite(cands) & (cands >= -tol) & (cands <= dd + tol)
+        if largest:
+            r = np.where(ok, cands, -np.inf).max(axis=0)
+            fallback = np.where(q0 + q1 * dd + q2 * dd * dd <= 0, dd, 0.0)  # end inside / no clean root
+        else:
+            r = np.where(ok, cands, np.inf).min(axis=0)
+            fallback = np.where(q0 <= 0, 0.0, dd)
+        r = np.where(np.isfinite(r), np.clip(r, 0.0, dd), fallback)
+        return ts + r
+
+    return root(j_first, largest=False), root(j_last, largest=True), has, c0[..., 0].astype(np.float64), f_stop
+
+
+def _sampled_crossings(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.ndarray, length: np.ndarray,
+                       n_seg: np.ndarray, n_steps: int, idx: np.ndarray | None, on_padded: bool):
+    """Crossings by marching N samples per line (step ``length / n_seg``), one bisection and a secant.
+
+    Used for lines that leave the padded grid (where the extrapolated SDF is not bilinear) and
+    when ``GripperParams.exact_crossings`` is off. Returns ``t`` (2, T, L), ``has`` (T, L), the
+    no-contact and start-inside flags (T,) and the clearances (2, T).
+    """
+    n_t, n_lines = ox.shape
+    pad = bank.pad
+    dt = (length / n_seg)[:, None]
     # Sample positions in float32 padded cell coordinates (1e-6 cell round-off; halves memory traffic).
     shape = (n_t, n_lines, n_steps)
     tt = (np.minimum(np.arange(n_steps, dtype=np.float64), n_seg[:, None]) * dt).astype(np.float32)[:, None, :]
@@ -594,6 +683,39 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
     denom = fa - fb
     w = np.where(denom > 0, fa / np.where(denom > 0, denom, 1.0), 0.5)
     t = ta + np.clip(w, 0.0, 1.0) * (tb - ta)  # (side, T, L)
+
+    return t, has, no_contact, inside, clear
+
+
+def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray, n_seg: np.ndarray,
+                 offsets: np.ndarray, n_steps: int, idx: np.ndarray | None, patch_tol: float, exact: bool = True):
+    """March one chunk of T trials along L face lines with N samples each (all in cell units).
+
+    Returns contact points (2, T, 2) in cells for jaw 1 and jaw 2, the no-contact and
+    start-inside flags (T,) and the clearances (2, T) (m) of both jaw faces.
+    """
+    n_lines = offsets.size
+    perp = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
+    # Line origins (T, L) and samples (T, L, N) in cells.
+    ox = a[:, 0, None] + offsets * perp[:, 0, None]
+    oy = a[:, 1, None] + offsets * perp[:, 1, None]
+    # All samples lie in the box spanned by both jaw faces (conservative bound).
+    reach = float(np.abs(offsets).max())
+    b = a + length[:, None] * unit
+    lo = np.minimum(a, b).min(axis=0) - reach
+    hi = np.maximum(a, b).max(axis=0) + reach
+    pad = bank.pad
+    on_padded = bool(lo.min() >= -pad and hi[0] <= bank.geometry.width - 1 + pad
+                     and hi[1] <= bank.geometry.height - 1 + pad)
+    if on_padded and exact:
+        t_first, t_last, has, f_start, f_stop = _exact_crossings(bank, ox, oy, unit, length, idx)
+        no_contact = ~_over_lines(np.logical_or, has)
+        inside = _over_lines(np.logical_or, f_start <= 0) | _over_lines(np.logical_or, f_stop <= 0)
+        clear = np.stack([_over_lines(np.minimum, f_start), _over_lines(np.minimum, f_stop)])
+        t = np.stack([t_first, t_last])  # (side, T, L)
+    else:
+        t, has, no_contact, inside, clear = _sampled_crossings(bank, ox, oy, unit, length, n_seg, n_steps, idx,
+                                                               on_padded)
 
     # Contact patch: lines touching within `patch_tol` of the first touch, weighted by a linear
     # ramp (1 at the first touch, 0 `patch_tol` later) so its centre moves continuously with the jaws.

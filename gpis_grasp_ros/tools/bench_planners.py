@@ -84,6 +84,66 @@ def _sample_value(sdf: np.ndarray, g: GridGeometry, u: float, v: float) -> float
     return _bilinear_clamped(sdf, u, v) + math.hypot(u - uc, v - vc) * g.resolution
 
 
+def _segment_roots(sdf: np.ndarray, g: GridGeometry, ox: float, oy: float, ux: float, uy: float,
+                   length: float) -> list[float]:
+    """Every zero crossing t (cells) of the bilinear SDF along a line, in order (scalar reference).
+
+    The line is cut at the grid lines it crosses; in each cell the bilinear interpolant along the
+    line is a quadratic whose roots are solved in closed form. Off the grid (where the SDF is
+    extrapolated, not bilinear) it is sampled every 0.05 cell and bisected.
+    """
+    h, w = sdf.shape
+    ts = {0.0, length}
+    for p0, u in ((ox, ux), (oy, uy)):
+        if abs(u) > 1e-12:
+            lo, hi = sorted((p0, p0 + length * u))
+            for k in range(math.ceil(lo), math.floor(hi) + 1):
+                t = (k - p0) / u
+                if 0.0 < t < length:
+                    ts.add(t)
+    ts = sorted(ts)
+    roots: list[float] = []
+    for t0, t1 in zip(ts[:-1], ts[1:], strict=True):
+        if t1 - t0 <= 0:
+            continue
+        mu, mv = ox + 0.5 * (t0 + t1) * ux, oy + 0.5 * (t0 + t1) * uy
+        if 0.0 <= mu <= w - 1 and 0.0 <= mv <= h - 1:
+            j, i = min(int(mu), w - 2), min(int(mv), h - 2)
+            f00, f01, f10, f11 = sdf[i, j], sdf[i, j + 1], sdf[i + 1, j], sdf[i + 1, j + 1]
+            a, b = ox + t0 * ux - j, oy + t0 * uy - i
+            k1, k2, k3 = f01 - f00, f10 - f00, f11 - f01 - f10 + f00
+            c0 = f00 + k1 * a + k2 * b + k3 * a * b
+            c1 = k1 * ux + k2 * uy + k3 * (a * uy + b * ux)
+            c2 = k3 * ux * uy
+            dd = t1 - t0
+            cand = [-c0 / c1] if abs(c2) < 1e-15 and c1 != 0 else []
+            if abs(c2) >= 1e-15:
+                disc = c1 * c1 - 4 * c2 * c0
+                if disc >= 0:
+                    cand = [(-c1 - math.sqrt(disc)) / (2 * c2), (-c1 + math.sqrt(disc)) / (2 * c2)]
+            if c0 <= 0:
+                cand.append(0.0)
+            roots += [t0 + r for r in sorted(cand) if -1e-9 <= r <= dd + 1e-9]
+        else:
+            n = max(1, math.ceil((t1 - t0) / 0.05))
+            prev_t, prev_f = t0, _sample_value(sdf, g, ox + t0 * ux, oy + t0 * uy)
+            for k in range(1, n + 1):
+                t = t0 + (t1 - t0) * k / n
+                f = _sample_value(sdf, g, ox + t * ux, oy + t * uy)
+                if (prev_f > 0) != (f > 0):
+                    lo_t, hi_t, lo_f = prev_t, t, prev_f
+                    for _ in range(40):
+                        mid = 0.5 * (lo_t + hi_t)
+                        fm = _sample_value(sdf, g, ox + mid * ux, oy + mid * uy)
+                        if (fm > 0) == (lo_f > 0):
+                            lo_t, lo_f = mid, fm
+                        else:
+                            hi_t = mid
+                    roots.append(0.5 * (lo_t + hi_t))
+                prev_t, prev_f = t, f
+    return roots
+
+
 def _contacts_loop(sdf: np.ndarray, gx: np.ndarray, gy: np.ndarray, g: GridGeometry, j1: np.ndarray,
                    j2: np.ndarray, gripper: GripperParams):
     """Contacts and normals (m) of one perturbed grasp on one SDF, or None if degenerate."""
@@ -95,30 +155,18 @@ def _contacts_loop(sdf: np.ndarray, gx: np.ndarray, gy: np.ndarray, g: GridGeome
         return None
     ux, uy = dx / length, dy / length
     px, py = -uy, ux
-    n_seg = max(math.ceil(length / gripper.march_step_cells - 1e-9), 1)
-    dt = length / n_seg
     offsets = gripper.face_offsets(g) / g.resolution
     sides = ([], [])  # per side: list of (offset, t, quadrature weight) of the crossing on each line
     for k_line, o in enumerate(offsets):
         end_line = len(offsets) > 1 and k_line in (0, len(offsets) - 1)
         ox, oy = a[0] + o * px, a[1] + o * py
-        f = [_sample_value(sdf, g, ox + k * dt * ux, oy + k * dt * uy) for k in range(n_seg + 1)]
-        if f[0] <= 0 or f[-1] <= 0:
+        if _sample_value(sdf, g, ox, oy) <= 0 or _sample_value(sdf, g, ox + length * ux, oy + length * uy) <= 0:
             return None  # a jaw starts inside
-        inside = [k for k, val in enumerate(f) if val <= 0]
-        if not inside:
+        roots = _segment_roots(sdf, g, ox, oy, ux, uy, length)
+        if not roots:
             continue
-        for side, k_in, k_out in ((0, inside[0], inside[0] - 1), (1, inside[-1], inside[-1] + 1)):
-            t_in, t_out = k_in * dt, k_out * dt
-            f_in, f_out = f[k_in], f[k_out]
-            t_mid = 0.5 * (t_in + t_out)
-            f_mid = _sample_value(sdf, g, ox + t_mid * ux, oy + t_mid * uy)
-            if f_mid <= 0:
-                ta, fa, tb, fb = t_out, f_out, t_mid, f_mid
-            else:
-                ta, fa, tb, fb = t_mid, f_mid, t_in, f_in
-            w = fa / (fa - fb) if fa - fb > 0 else 0.5
-            sides[side].append((o, ta + min(max(w, 0.0), 1.0) * (tb - ta), 0.5 if end_line else 1.0))
+        for side, t_c in ((0, roots[0]), (1, roots[-1])):
+            sides[side].append((o, t_c, 0.5 if end_line else 1.0))
     if not sides[0]:
         return None
     out = []
