@@ -43,7 +43,8 @@ class RealEvaluation:
     successes: int  # of ``trials`` simulated executions of the GP-GPIS-OPT grasp in force closure on the truth
     trials: int
     p_f: float
-    jaw_clearance_m: float  # smallest distance from a jaw centre to another object seen on the table
+    jaw_clearance_m: float  # smallest distance (m) from a jaw centre to another object seen on the table
+    #                          (evidence more than 1 cm outside the true target)
     objects_seen: int
     tilt_deg: float
     message: str = ''
@@ -80,7 +81,10 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
                               float('nan'), float('nan'), result.objects_seen, result.table.tilt_deg, grasp.message)
     jaws = [tg.from_sensor(g.to_sensor(np.asarray(j, dtype=np.float64)))[0] for j in (grasp.jaw1, grasp.jaw2)]
     ok = execute_grasp_trials(true_sdf, tg, jaws[0], jaws[1], gripper, trials, np.random.default_rng(seed))
-    others = _other_objects_xy(result)
+    others = _other_objects_xy(result)  # other objects seen, minus fragments of the true target (1 cm)
+    if len(others):
+        on_target = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(others))[0]) < 0.01
+        others = others[~on_target]
     clearance = (float(min(np.linalg.norm(others - np.asarray(j), axis=1).min() for j in (grasp.jaw1, grasp.jaw2)))
                  if len(others) else float('inf'))
     return RealEvaluation(str(path), iou(result.occupancy >= 0.5), iou(posterior.mean < 0), int(ok), trials,
