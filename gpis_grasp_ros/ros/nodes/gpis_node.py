@@ -159,9 +159,10 @@ class GpisNode(GuardedNode):
             t_noise = messages.stamp_to_ns(noise_msg.header.stamp)
             if abs(t_occ - t_noise) > config.stamp_tolerance * 1e9:
                 return  # stale or mismatched pair: wait for the partner
-            if self._last_pair is not None and self._last_pair[0] is occ_msg and self._last_pair[1] is noise_msg:
-                return  # this exact pair was already used (a replayed bag may repeat stamps)
-            self._last_pair = (occ_msg, noise_msg)
+            if self._last_pair is not None and (self._last_pair[0] is occ_msg or self._last_pair[1] is noise_msg):
+                # each message is used once: a replayed bag repeats its stamps, so the previous
+                # pass's partner has the same stamp; wait for this pass's partner
+                return
         try:
             occ, geometry = messages.occupancy_grid_to_numpy(occ_msg)
             noise, noise_geometry = messages.float_grid_to_numpy(noise_msg)
@@ -176,6 +177,8 @@ class GpisNode(GuardedNode):
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.get_logger().warning(f'GPIS not updated: {exc}')
             return
+        with self._lock:
+            self._last_pair = (occ_msg, noise_msg)
         self._publish(posterior, occ_msg.header, config)
 
     def fit(self, occ: np.ndarray, noise: np.ndarray, geometry, params: gpis.GpisParams | None = None

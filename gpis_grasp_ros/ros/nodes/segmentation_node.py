@@ -169,7 +169,7 @@ class SegmentationNode(GuardedNode):
         )
         declare(self, 'min_frames', 3, 'fewest frames of a burst that make an estimate when the burst ends '
                 'before frames_to_average frames arrived', low=1, high=1000)
-        declare(self, 'burst_timeout', 0.5, 'a burst ends when no frame arrived for this long (s)', low=0.05, high=60.0)
+        declare(self, 'burst_timeout', 1.5, 'a burst ends when no frame arrived for this long (s)', low=0.05, high=60.0)
         declare(self, 'max_stamp_gap', 1.0, 'frames whose header stamps are further apart than this (s), or go '
                 'backwards, belong to different bursts', low=0.01, high=3600.0)
         declare(self, 'max_image_pixels', lim.max_image_pixels, 'largest camera frame accepted (pixels); larger '
