@@ -536,7 +536,7 @@ def _exact_crossings(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.nda
     """Exact first and last zero crossings of the bilinear SDF along T x L lines (cell units).
 
     Lines start at (ox, oy) (T, L) (unpadded cell coordinates, all on the padded grid), run along
-    ``unit`` (T, 2) for ``length`` (T,) cells. Each line is cut where it crosses a grid line;
+    ``unit`` (T, 2) for ``length`` (T, L) cells. Each line is cut where it crosses a grid line;
     inside a cell the bilinear interpolant restricted to the line is a quadratic
     ``c0 + c1 τ + c2 τ²``, whose smallest (largest) root in the first (last) segment that reaches
     f <= 0 is the crossing seen from jaw 1 (jaw 2). No sampling step: a sliver of the object
@@ -548,12 +548,11 @@ def _exact_crossings(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.nda
     ux64, uy64 = unit[:, 0, None, None], unit[:, 1, None, None]
     px0 = (ox + pad)[..., None]
     py0 = (oy + pad)[..., None]
-    lmax = float(length.max(initial=0.0))
-    len3 = length[:, None, None]
+    len3 = np.broadcast_to(length, (n_t, n_l))[..., None]
     # Breakpoints: both ends and every grid line crossed (a superset is harmless).
-    breaks = [np.zeros((n_t, n_l, 1)), np.broadcast_to(len3, (n_t, n_l, 1))]
+    breaks = [np.zeros((n_t, n_l, 1)), len3]
     for p0, u in ((px0, ux64), (py0, uy64)):
-        k = int(math.ceil(lmax * float(np.abs(u).max(initial=0.0)))) + 1
+        k = int(math.ceil(float((len3 * np.abs(u)).max(initial=0.0)))) + 1
         au = np.abs(u)
         first = np.where(u >= 0, np.floor(p0) + 1.0 - p0, p0 - np.ceil(p0) + 1.0)
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -708,7 +707,7 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
     on_padded = bool(lo.min() >= -pad and hi[0] <= bank.geometry.width - 1 + pad
                      and hi[1] <= bank.geometry.height - 1 + pad)
     if on_padded and exact:
-        t_first, t_last, has, f_start, f_stop = _exact_crossings(bank, ox, oy, unit, length, idx)
+        t_first, t_last, has, f_start, f_stop = _exact_crossings(bank, ox, oy, unit, length[:, None], idx)
         no_contact = ~_over_lines(np.logical_or, has)
         inside = _over_lines(np.logical_or, f_start <= 0) | _over_lines(np.logical_or, f_stop <= 0)
         clear = np.stack([_over_lines(np.minimum, f_start), _over_lines(np.minimum, f_stop)])
