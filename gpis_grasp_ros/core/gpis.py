@@ -80,6 +80,14 @@ set of training cells with all their gradient components). Choices, each a docum
   region) vanished from the mean shape at ML's unbounded l = 9.5 cells. It binds on A and F of
   the 8 shipped bags (ML is interior on the other six). Being relative to E, the bounds do not
   change with M.
+* Thickness bound: l <= ``length_scale_max_thickness`` (3) x r_in as well, r_in the largest
+  inscribed radius of the observed object (max of -SDF; missing cells count as object). An SE
+  kernel whose l exceeds ~1.5 times the object's width correlates both sides of it with the free
+  space around it, and the mean smooths the object away: the shipped nail B (one cell wide,
+  r_in = 0.5 cell) vanished at ML's l = 2.5 cells (0 object cells in the mean) and stays at
+  l = 1.5 cells (15 cells for 11 occupied). The bound is a property of the data, not a tuned
+  number; it binds only on thin objects (B and G of the shipped bags). Limitation: r_in is the
+  object's *thickest* part, so a thin handle on a thick body is not protected by it.
 * A bound that binds is logged (warning, logger ``gpis_grasp_ros.core.gpis``) and listed in
   ``posterior.bound_hits``. A likelihood evaluation whose K + N cannot be factorised is counted
   (``HyperparameterFit.cholesky_failures``) and logged; L-BFGS-B sees a wall there (1e25), a start
@@ -173,6 +181,7 @@ class GpisParams:
     blas_threads: int | None = 1  # BLAS threads during the fit (None = library default), see blas_threads()
     length_scale_min_cells: float = 1.0  # lower bound on l in grid cells (module docstring: Hyperparameters)
     length_scale_max_extent: float = 1.0 / 6.0  # upper bound on l as a multiple of the grid extent E
+    length_scale_max_thickness: float | None = 3.0  # upper bound on l as a multiple of the inscribed radius r_in
     signal_std_bounds: tuple[float, float] = (1e-3, 10.0)  # sqrt(C) x grid extent
 
     def __post_init__(self) -> None:
@@ -186,6 +195,9 @@ class GpisParams:
             raise ValueError(f'gradient_noise_variance must be >= 0, got {self.gradient_noise_variance}')
         if self.max_rank < 1 or not (0 <= self.rank_tolerance < 1):
             raise ValueError('max_rank must be >= 1 and rank_tolerance in [0, 1)')
+        if self.length_scale_max_thickness is not None and not (0 < self.length_scale_max_thickness < math.inf):
+            raise ValueError('length_scale_max_thickness must be positive or None, got '
+                             f'{self.length_scale_max_thickness}')
         if not (0 < self.length_scale_min_cells and 0 < self.length_scale_max_extent < math.inf):
             raise ValueError('length_scale_min_cells and length_scale_max_extent must be positive, got '
                              f'{self.length_scale_min_cells}, {self.length_scale_max_extent}')
@@ -891,23 +903,29 @@ def negative_log_marginal_likelihood(log_theta: np.ndarray, kernel: _DenseKernel
     return nll, grad
 
 
-def hyperparameter_bounds(geometry: GridGeometry,
-                          params: GpisParams) -> tuple[tuple[float, float], tuple[float, float]]:
+def hyperparameter_bounds(geometry: GridGeometry, params: GpisParams,
+                          inscribed_radius_m: float | None = None) -> tuple[tuple[float, float], tuple[float, float]]:
     """Bounds (m^2, m) for C and l (module docstring, Hyperparameters).
 
-    l in [``length_scale_min_cells`` cells, ``length_scale_max_extent`` x E], sqrt(C) in
-    ``signal_std_bounds`` x E, E the grid's metric extent (its longer side).
+    l in [``length_scale_min_cells`` cells, min(``length_scale_max_extent`` x E,
+    ``length_scale_max_thickness`` x ``inscribed_radius_m``)], sqrt(C) in ``signal_std_bounds`` x E,
+    E the grid's metric extent (its longer side), ``inscribed_radius_m`` the object's largest
+    inscribed radius (m; None or <= 0: no thickness bound).
     """
     extent = max(geometry.size_m)
     lo_l = params.length_scale_min_cells * geometry.resolution
-    hi_l = max(params.length_scale_max_extent * extent, 1.01 * lo_l)
+    hi_l = params.length_scale_max_extent * extent
+    if params.length_scale_max_thickness is not None and inscribed_radius_m is not None and inscribed_radius_m > 0:
+        hi_l = min(hi_l, params.length_scale_max_thickness * inscribed_radius_m)
+    hi_l = max(hi_l, 1.01 * lo_l)
     lo_s, hi_s = (params.signal_std_bounds[0] * extent, params.signal_std_bounds[1] * extent)
     return (lo_s ** 2, hi_s ** 2), (lo_l, hi_l)
 
 
-def initial_hyperparameters(geometry: GridGeometry, train_y: np.ndarray, params: GpisParams) -> tuple[float, float]:
+def initial_hyperparameters(geometry: GridGeometry, train_y: np.ndarray, params: GpisParams,
+                            inscribed_radius_m: float | None = None) -> tuple[float, float]:
     """Start / default (C, l): given values, else C = mean (y - m)^2 and l = extent / 12 (~2 cells at M = 25)."""
-    (c_lo, c_hi), (l_lo, l_hi) = hyperparameter_bounds(geometry, params)
+    (c_lo, c_hi), (l_lo, l_hi) = hyperparameter_bounds(geometry, params, inscribed_radius_m)
     c0 = params.signal_variance
     if c0 is None:
         c0 = float(np.clip(np.mean((train_y - params.prior_mean) ** 2), c_lo, c_hi))
@@ -937,7 +955,8 @@ def _search_subset(obs: _Observations, max_points: int, rng: np.random.Generator
 
 
 def fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: GpisParams,
-                        eligible: np.ndarray | None = None) -> HyperparameterFit:
+                        eligible: np.ndarray | None = None,
+                        inscribed_radius_m: float | None = None) -> HyperparameterFit:
     """Maximum-marginal-likelihood C (m^2) and l (m) from values and gradient observations.
 
     L-BFGS-B on (log C, log l) within :func:`hyperparameter_bounds`, on a seeded subset of at most
@@ -945,19 +964,19 @@ def fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpis
     reported on the returned :class:`HyperparameterFit`.
     """
     with blas_threads(params.blas_threads):
-        return _fit_hyperparameters(geometry, obs, params, eligible)
+        return _fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius_m)
 
 
 def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: GpisParams,
-                         eligible: np.ndarray | None) -> HyperparameterFit:
+                         eligible: np.ndarray | None, inscribed_radius_m: float | None) -> HyperparameterFit:
     rng = np.random.default_rng(params.seed)
     sub = _search_subset(obs, params.max_opt_points, rng, eligible)
     kernel = _DenseKernel(sub)
     resid = sub.y - np.where(sub.kind == VALUE, params.prior_mean, 0.0)
     noise = sub.noise + params.jitter
-    (c_lo, c_hi), (l_lo, l_hi) = bounds = hyperparameter_bounds(geometry, params)
+    (c_lo, c_hi), (l_lo, l_hi) = bounds = hyperparameter_bounds(geometry, params, inscribed_radius_m)
     log_bounds = [(math.log(c_lo), math.log(c_hi)), (math.log(l_lo), math.log(l_hi))]
-    c0, l0 = initial_hyperparameters(geometry, sub.y[:sub.n_values], params)
+    c0, l0 = initial_hyperparameters(geometry, sub.y[:sub.n_values], params, inscribed_radius_m)
     starts = [np.log([np.clip(c0, c_lo, c_hi), np.clip(l0, l_lo, l_hi)])]
     for _ in range(params.n_restarts):
         starts.append(np.array([rng.uniform(*log_bounds[0]), rng.uniform(*log_bounds[1])]))
@@ -1040,16 +1059,17 @@ def fit_gpis(sdf_m: np.ndarray, noise_variance_m2: np.ndarray, train_mask: np.nd
     if params.gradient_observations:
         gradients = gradient_observations(sdf, noise, mask, geometry, params.gradient_noise_variance)
     obs = _observations_from(centers[mask], sdf[mask], noise[mask], gradients)
+    inscribed_radius = max(0.0, -float(sdf.min()))  # m, largest inscribed radius of the object (Thickness bound)
     with blas_threads(params.blas_threads):
         fit = None
         if params.optimize_hyperparameters:
             eligible = None
             if params.search_band_cells is not None:
                 eligible = np.abs(sdf[mask]) <= params.search_band_cells * geometry.resolution
-            fit = fit_hyperparameters(geometry, obs, params, eligible)
+            fit = fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius)
             c, ell = fit.signal_variance, fit.length_scale
         else:
-            c, ell = initial_hyperparameters(geometry, obs.y[:obs.n_values], params)
+            c, ell = initial_hyperparameters(geometry, obs.y[:obs.n_values], params, inscribed_radius)
         kp = KernelParams(signal_variance=c, length_scale=ell, prior_mean=params.prior_mean)
         return _condition(geometry, kp, obs, params.jitter, params.max_exact_points, params.rank_tolerance,
                           params.max_rank, params.optimize_hyperparameters, fit)

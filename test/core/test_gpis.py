@@ -383,6 +383,31 @@ def test_binding_bound_is_logged_and_exposed(caplog):
     assert hi[0] == pytest.approx(g.resolution) and hi[1] == pytest.approx(0.12 / 6)
 
 
+def _thin_bar_scene(m: int = 25) -> tuple[GridGeometry, np.ndarray, np.ndarray, np.ndarray]:
+    """A one-cell-wide diagonal bar (like the shipped nail B) with Carmine-like noise on a 25 x 25 grid."""
+    g = GridGeometry(0.0, 0.0, 0.003, m, m)
+    rows, cols = np.indices(g.shape)
+    bar = (np.abs(rows - cols) <= 0) & (rows > 3) & (rows < m - 4)
+    sdf = signed_distance(bar, g.resolution)
+    noise = np.full(g.shape, (0.0015) ** 2)
+    return g, sdf, bar, noise
+
+
+def test_thickness_bound_keeps_a_one_cell_wide_object():
+    """l <= 3 r_in (module docstring, Thickness bound): a one-cell bar stays in the mean shape, and the
+    bound is reported as binding; r_in = 0.5 cell gives l = 1.5 cells."""
+    g, sdf, bar, noise = _thin_bar_scene()
+    post = fit_gpis(sdf, noise, np.ones(g.shape, bool), g, GpisParams())
+    assert 'length_scale_upper' in post.bound_hits
+    assert post.params.length_scale == pytest.approx(1.5 * g.resolution, rel=1e-6)
+    kept = np.count_nonzero((post.mean < 0) & bar) / np.count_nonzero(bar)
+    assert kept > 0.9
+    _, (_, hi) = gp.hyperparameter_bounds(g, GpisParams(), inscribed_radius_m=0.5 * g.resolution)
+    assert hi == pytest.approx(1.5 * g.resolution)
+    _, (_, hi) = gp.hyperparameter_bounds(g, GpisParams(length_scale_max_thickness=None), 0.5 * g.resolution)
+    assert hi == pytest.approx(max(g.size_m) / 6)
+
+
 def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypatch):
     m = 12
     g = GridGeometry(0.0, 0.0, 0.01, m, m)
