@@ -516,6 +516,15 @@ def _color(value: Any, what: str) -> tuple[int, int, int]:
     return c  # type: ignore[return-value]
 
 
+def shadow_shift(light: tuple[float, float] | None) -> np.ndarray | None:
+    """Table-frame shift (m per m of height) from an occluder point to its shadow on the table, for a light
+    at (azimuth, elevation) degrees (module docstring); None without a light."""
+    if light is None:
+        return None
+    az, el = (math.radians(float(v)) for v in light)
+    return -np.array([math.cos(az), math.sin(az)]) * (math.cos(el) / math.sin(el))
+
+
 def _smooth_field(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float) -> np.ndarray:
     """Zero-mean, unit-std spatially correlated random field."""
     f = ndimage.gaussian_filter(rng.standard_normal(shape), sigma_px, mode='reflect')
@@ -650,11 +659,7 @@ class Scene:
 
     # ------------------------------------------------------------------ material raster
     def _shadow_shift(self) -> np.ndarray | None:
-        """Lateral shift (m per m of height) from an occluder point to its shadow on the table, or None."""
-        if self.spec.light is None:
-            return None
-        az, el = (math.radians(float(v)) for v in self.spec.light)
-        return -np.array([math.cos(az), math.sin(az)]) * (math.cos(el) / math.sin(el))
+        return shadow_shift(self.spec.light)
 
     def _build_raster(self) -> None:
         res = self.RASTER_RES
