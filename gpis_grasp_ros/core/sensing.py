@@ -34,18 +34,25 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    pixels seen above the table within ``MISSING_HEIGHT_WINDOW_M`` around it, else where the ray
    meets the plane) and
    rasterised at about two pixel footprints; the raster is closed (3 x 3) and split into 8-connected
-   components; components under ``min_object_area_px`` pixels or ``min_object_area_m2`` are
-   specks. The number of objects seen is reported (``objects_seen``). ``target`` picks one:
+   components of the positive (depth or colour) evidence; hole regions join an object within
+   ``MISSING_ATTACH_M`` of its seen parts (all of a hole region touching only that object, up to
+   2 ``MISSING_BRIDGE_M`` across; a hole region up to ``MISSING_BRIDGE_M`` touching several objects
+   joins them; one touching none is an object of its own), so drop-outs along a real table do not
+   chain objects together; components under ``min_object_area_px`` pixels or ``min_object_area_m2``
+   are specks. The number of objects seen is reported (``objects_seen``). ``target`` picks one:
    ``largest`` (table-plane area), ``nearest_center`` (its pixels' centroid nearest the image
    centre), ``pixel`` / ``table`` (the component containing ``target_point``: a pixel (u, v), or
    table-frame (x, y) in m, within ``target_tolerance_m``). The target is refused (ValueError,
    nothing to publish) when it reaches within ``border_px`` of the image (or pixel ROI) edge - it
-   is cut by the border - or when it is wider than ``max_opening_m`` in every direction.
+   is cut by the border - or when it is wider than ``max_opening_m`` in every direction (convex
+   hull) and no part of it is narrower (largest inscribed disc), i.e. no part fits the gripper.
 6. **Grid in the table plane.** The target's footprint bounding box in the table frame plus
    ``margin`` of its larger side on every side gives a square of side S, M x M cells
    (``grid_size``); the grid's pose is the table frame (``GridGeometry.rotation`` = R, ``z`` = d).
    Every pixel is projected orthographically as above and averaged into the cell under its
-   foot; pixels of other objects count as table (occupancy 0: the grid holds the target only)
+   foot, weighted by the table area its foot covers (a wall facing a tilted camera projects onto a
+   line and gets ~0 weight); cells between the feet of neighbouring pixels take the mean of their
+   observed neighbours; pixels of other objects count as table (occupancy 0: the grid holds the target only)
    and their missing pixels are ignored. A cell that no pixel reaches is sampled at its centre's
    image point if that pixel sees the table there (a grid finer than the pixels); if that pixel
    sees something above the table the cell is **occluded** (hidden behind an object from a
