@@ -75,6 +75,9 @@ from gpis_grasp_ros.core.grid import GridGeometry
 #: cache (about 2x faster than large chunks), large enough to amortise the Python overhead.
 MAX_POINTS_PER_CHUNK = 1 << 16
 
+#: March step (cells) for lines that leave the padded grid when crossings are otherwise exact.
+OFF_GRID_STEP_CELLS = 0.1
+
 #: An SDF gradient norm (dimensionless; 1 for an exact SDF) at or below this defines no normal:
 #: the contact is flagged ``no_normal`` (invalid) instead of being given an arbitrary direction.
 MIN_GRADIENT_NORM = 1e-6
@@ -686,6 +689,16 @@ def _sampled_crossings(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.n
     return t, has, no_contact, inside, clear
 
 
+def _exact_on_padded(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.ndarray, length: np.ndarray,
+                     idx: np.ndarray | None):
+    """:func:`_exact_crossings` packaged like :func:`_sampled_crossings`' result."""
+    t_first, t_last, has, f_start, f_stop = _exact_crossings(bank, ox, oy, unit, length[:, None], idx)
+    no_contact = ~_over_lines(np.logical_or, has)
+    inside = _over_lines(np.logical_or, f_start <= 0) | _over_lines(np.logical_or, f_stop <= 0)
+    clear = np.stack([_over_lines(np.minimum, f_start), _over_lines(np.minimum, f_stop)])
+    return np.stack([t_first, t_last]), has, no_contact, inside, clear
+
+
 def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray, n_seg: np.ndarray,
                  offsets: np.ndarray, n_steps: int, idx: np.ndarray | None, patch_tol: float, exact: bool = True):
     """March one chunk of T trials along L face lines with N samples each (all in cell units).
@@ -698,23 +711,41 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
     # Line origins (T, L) and samples (T, L, N) in cells.
     ox = a[:, 0, None] + offsets * perp[:, 0, None]
     oy = a[:, 1, None] + offsets * perp[:, 1, None]
-    # All samples lie in the box spanned by both jaw faces (conservative bound).
+    # All samples lie in the box spanned by both jaw faces (conservative bound), per trial.
     reach = float(np.abs(offsets).max())
     b = a + length[:, None] * unit
-    lo = np.minimum(a, b).min(axis=0) - reach
-    hi = np.maximum(a, b).max(axis=0) + reach
+    lo = np.minimum(a, b) - reach
+    hi = np.maximum(a, b) + reach
     pad = bank.pad
-    on_padded = bool(lo.min() >= -pad and hi[0] <= bank.geometry.width - 1 + pad
-                     and hi[1] <= bank.geometry.height - 1 + pad)
-    if on_padded and exact:
-        t_first, t_last, has, f_start, f_stop = _exact_crossings(bank, ox, oy, unit, length[:, None], idx)
-        no_contact = ~_over_lines(np.logical_or, has)
-        inside = _over_lines(np.logical_or, f_start <= 0) | _over_lines(np.logical_or, f_stop <= 0)
-        clear = np.stack([_over_lines(np.minimum, f_start), _over_lines(np.minimum, f_stop)])
-        t = np.stack([t_first, t_last])  # (side, T, L)
+    on_t = ((lo >= -pad).all(axis=1) & (hi[:, 0] <= bank.geometry.width - 1 + pad)
+            & (hi[:, 1] <= bank.geometry.height - 1 + pad))
+    on_padded = bool(on_t.all())
+    if not exact:
+        return_vals = _sampled_crossings(bank, ox, oy, unit, length, n_seg, n_steps, idx, on_padded)
+    elif on_padded:
+        return_vals = _exact_on_padded(bank, ox, oy, unit, length, idx)
     else:
-        t, has, no_contact, inside, clear = _sampled_crossings(bank, ox, oy, unit, length, n_seg, n_steps, idx,
-                                                               on_padded)
+        # Per trial, never per batch (a trial's contacts must not depend on the rest of the batch):
+        # exact crossings on the padded grid; lines leaving it are marched every OFF_GRID_STEP_CELLS.
+        n_t, n_l = ox.shape
+        t = np.zeros((2, n_t, n_l))
+        has = np.zeros((n_t, n_l), dtype=bool)
+        no_contact = np.zeros(n_t, dtype=bool)
+        inside = np.zeros(n_t, dtype=bool)
+        clear = np.zeros((2, n_t))
+        for rows, use_exact in ((np.flatnonzero(on_t), True), (np.flatnonzero(~on_t), False)):
+            if rows.size == 0:
+                continue
+            sub_idx = None if idx is None else idx[rows]
+            if use_exact:
+                out = _exact_on_padded(bank, ox[rows], oy[rows], unit[rows], length[rows], sub_idx)
+            else:
+                seg = np.maximum(np.ceil(length[rows] / OFF_GRID_STEP_CELLS - 1e-9), 1.0)
+                out = _sampled_crossings(bank, ox[rows], oy[rows], unit[rows], length[rows], seg,
+                                         int(seg.max()) + 1, sub_idx, False)
+            t[:, rows], has[rows], no_contact[rows], inside[rows], clear[:, rows] = out
+        return_vals = (t, has, no_contact, inside, clear)
+    t, has, no_contact, inside, clear = return_vals
 
     # Contact patch: lines touching within `patch_tol` of the first touch, weighted by a linear
     # ramp (1 at the first touch, 0 `patch_tol` later) so its centre moves continuously with the jaws.

@@ -237,3 +237,17 @@ def test_exact_crossings_find_slivers_a_march_steps_over(seed: int) -> None:
     both = ok & sampled.valid
     moved = np.linalg.norm(sampled.c1[both] - exact.c1[both], axis=1) > 0.1 * RES
     assert moved.any()
+
+
+def test_a_trials_contacts_do_not_depend_on_the_batch() -> None:
+    """Trials on the grid get the same exact contacts whether or not the batch holds far off-grid jaws."""
+    bank = SdfBank(rectangle_sdf(G, tuple(CENTRE), (0.015, 0.01), angle=0.3), G)
+    rng = np.random.default_rng(3)
+    u = _directions(50, rng)
+    j1, j2 = CENTRE - 0.045 * u, CENTRE + 0.045 * u
+    alone = find_contacts(bank, j1, j2, GripperParams())
+    far = np.array([[-0.5, -0.5]])  # 100 cells off the grid
+    mixed = find_contacts(bank, np.concatenate([j1, far]), np.concatenate([j2, far + [0.09, 0.0]]), GripperParams())
+    np.testing.assert_array_equal(mixed.c1[:50], alone.c1)
+    np.testing.assert_array_equal(mixed.n2[:50], alone.n2)
+    assert mixed.no_contact[50]
