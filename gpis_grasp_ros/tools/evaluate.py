@@ -522,9 +522,12 @@ def dask_client(scheduler: str = 'local', workers: int = 2) -> Iterator[Any]:
     from distributed import Client, LocalCluster
 
     if scheduler == 'local':
+        # no dashboard; the scheduler's small HTTP endpoint (health, metrics) on a free loopback port
+        # instead of 8787, so several private clusters can run side by side
+        http = {'dashboard': False, 'dashboard_address': '127.0.0.1:0'}
         with _single_thread_env(), LocalCluster(host='127.0.0.1', dashboard_address=None, processes=True,
-                                                n_workers=int(workers), threads_per_worker=1,
-                                                silence_logs=40) as cluster, Client(cluster) as client:
+                                                n_workers=int(workers), threads_per_worker=1, silence_logs=40,
+                                                scheduler_kwargs=http) as cluster, Client(cluster) as client:
             yield client
     else:
         _check_scheduler(scheduler)
