@@ -25,7 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 def usage() -> str:
     lines = ['usage: gpis-grasp COMMAND [options]   (gpis-grasp COMMAND --help for details)', '', 'commands:']
-    lines += [f'  {name:<10} {help_text}' for name, (_, help_text) in COMMANDS.items()]
+    lines += [f'  {name:<12} {help_text}' for name, (_, help_text) in COMMANDS.items()]
     return '\n'.join(lines)
 
 
