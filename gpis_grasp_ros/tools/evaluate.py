@@ -920,8 +920,10 @@ def main(argv: list[str] | None = None) -> int:
     table = summary_table(run.rows)
     (out / 'summary.md').write_text(table + '\n', encoding='utf8')
     print(table)
+    where = f'Dask at {args.scheduler}' if args.executor == 'dask' and args.scheduler != 'local' else \
+        f'{run.executor} x {run.workers}'
     print(f'\n{len(run.rows)} of {len(tasks)} tasks done ({run.resumed} resumed) in {run.wall_time_s:.1f} s '
-          f'with {run.executor} x {run.workers}; results in {out}')
+          f'with {where}; results in {out}')
     if run.failures:
         print(f'gpis-grasp evaluate: {len(run.failures)} task(s) failed after retry (details in '
               f'{out / "failures.jsonl"}):', file=sys.stderr)
