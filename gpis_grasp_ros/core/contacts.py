@@ -595,15 +595,15 @@ def _exact_crossings(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.nda
               ).astype(np.float64)
     hit[..., last_seg] |= f_stop <= 0
     has = hit.any(axis=2)
-    j_first = np.argmax(hit, axis=2)[..., None]
+    base = (np.arange(n_t * n_l) * n_s).reshape(n_t, n_l)
+    j_first = base + np.argmax(hit, axis=2)  # flat indices into the (T, L, S) arrays
     # entered f <= 0 at the start of segment j: the crossing lies in segment j - 1 (whose end is inside)
-    entered = (np.take_along_axis(c0, j_first, 2) <= 0) & (j_first > 0)
-    j_first -= entered
-    j_last = (last_seg - np.argmax(hit[..., ::-1], axis=2))[..., None]
+    j_first -= (c0.reshape(-1).take(j_first) <= 0) & (j_first > base)
+    j_last = base + (last_seg - np.argmax(hit[..., ::-1], axis=2))
+    flat_arrays = [np.ascontiguousarray(arr).reshape(-1) for arr in (c0, c1, c2, dseg, t0)]
 
     def root(j: np.ndarray, largest: bool) -> np.ndarray:
-        q0, q1, q2, dd, ts = (np.take_along_axis(arr, j, 2)[..., 0].astype(np.float64)
-                              for arr in (c0, c1, c2, dseg, t0))
+        q0, q1, q2, dd, ts = (arr.take(j).astype(np.float64) for arr in flat_arrays)
         sq = np.sqrt(np.maximum(q1 * q1 - 4.0 * q2 * q0, 0.0))
         qq = -0.5 * (q1 + np.where(q1 >= 0, sq, -sq))
         with np.errstate(divide='ignore', invalid='ignore'):
