@@ -20,7 +20,8 @@ def test_identity_pose_is_the_top_down_convention():
     p = g.to_sensor(xy)
     np.testing.assert_array_equal(p[..., :2], xy)
     np.testing.assert_array_equal(p[..., 2], 0.7)
-    np.testing.assert_allclose(g.to_sensor(xy, height=0.02)[..., 2], 0.68, rtol=0, atol=1e-15)  # above the table = nearer
+    # above the table = nearer the camera
+    np.testing.assert_allclose(g.to_sensor(xy, height=0.02)[..., 2], 0.68, rtol=0, atol=1e-15)
     np.testing.assert_array_equal(g.table_normal, [0.0, 0.0, -1.0])
 
 
