@@ -45,7 +45,7 @@ class BagScene:
     stamp_ns: int  # stamp of the last frame used
     true_sdf: np.ndarray | None = None  # m, positive outside
     true_geometry: GridGeometry | None = None
-    true_center_of_mass: np.ndarray | None = None  # (x, y) m
+    true_center_of_mass: np.ndarray | None = None  # (x, y) m in true_geometry's grid (table) frame
 
 
 def load_bag(path: str | os.PathLike[str], frames: int = 10, source: str = 'cloud') -> BagScene:
@@ -66,7 +66,7 @@ def load_bag(path: str | os.PathLike[str], frames: int = 10, source: str = 'clou
         if topic == TRUE_SDF_TOPIC:
             scene_gt['sdf'], scene_gt['geometry'] = messages.float_grid_to_numpy(msg)
         elif topic == TRUE_COM_TOPIC:
-            scene_gt['com'] = messages.point_stamped_to_numpy(msg)[:2]
+            scene_gt['com'] = messages.point_stamped_to_numpy(msg)  # sensor frame, 3D
         elif source == 'cloud' and topic == CLOUD_TOPIC and len(clouds) < frames:
             clouds.append(messages.pointcloud2_to_xyz_rgb(msg))
             frame_id, stamp = msg.header.frame_id, messages.stamp_to_ns(msg.header.stamp)
@@ -92,8 +92,12 @@ def load_bag(path: str | os.PathLike[str], frames: int = 10, source: str = 'clou
         intrinsics = info
     else:
         raise ValueError(f"source must be 'cloud' or 'images', got '{source}'")
-    return BagScene(rgb, depth, intrinsics, frame_id, stamp, scene_gt.get('sdf'), scene_gt.get('geometry'),
-                    scene_gt.get('com'))
+    com = scene_gt.get('com')
+    if com is not None and scene_gt.get('geometry') is not None:  # into the truth grid's (table) frame
+        com = scene_gt['geometry'].from_sensor(com)[0]
+    elif com is not None:
+        com = com[:2]
+    return BagScene(rgb, depth, intrinsics, frame_id, stamp, scene_gt.get('sdf'), scene_gt.get('geometry'), com)
 
 
 def posterior_from_scene(scene: BagScene, sensing_params: SensingParams = SensingParams(),

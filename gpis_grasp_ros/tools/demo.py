@@ -112,8 +112,9 @@ def main(argv: list[str] | None = None) -> int:
             log(f'executing {method} grasp {args.trials}x on the simulated gripper ...')
             ex = exec_cli.call(ExecuteGrasp.Request(jaw1=plan.jaw1, jaw2=plan.jaw2, trials=args.trials,
                                                     seed=args.seed), timeout_sec=args.timeout)
-            jaw1 = [plan.jaw1.pose.position.x, plan.jaw1.pose.position.y]
-            jaw2 = [plan.jaw2.pose.position.x, plan.jaw2.pose.position.y]
+            # jaw poses are 3D points in the camera frame; the pictures are drawn in the grid (table) frame
+            jaw1 = [plan.jaw1.pose.position.x, plan.jaw1.pose.position.y, plan.jaw1.pose.position.z]
+            jaw2 = [plan.jaw2.pose.position.x, plan.jaw2.pose.position.y, plan.jaw2.pose.position.z]
             rows.append({
                 'method': method, 'success': True, 'p_f': plan.probability_force_closure,
                 'p_f_std_error': plan.probability_force_closure_std_error,
@@ -123,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
                 'sim_successes': int(ex.successes) if ex else 0, 'sim_trials': int(ex.trials) if ex else 0,
                 'sim_success_rate': float(ex.success_rate) if ex else float('nan'),
             })
-            results.append((method, np.array(jaw1), np.array(jaw2), plan.probability_force_closure))
+            results.append((method, posterior.geometry.from_sensor(np.array(jaw1))[0],
+                            posterior.geometry.from_sensor(np.array(jaw2))[0], plan.probability_force_closure))
 
         # ------------------------------------------------------------ pictures + summary
         from gpis_grasp_ros.core.blur import gpis_blur
