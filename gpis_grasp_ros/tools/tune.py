@@ -183,7 +183,10 @@ def plot(cv: CvResult, path: Path) -> None:
         ax.errorbar(lambdas, mean, yerr=std, marker='o', capsize=3, label=f'α = {a:g}')
     lam_c, a_c = cv.settings[cv.chosen]
     ax.plot([lam_c], [cv.fold_heldout[:, cv.chosen].mean()], 'o', ms=14, mfc='none', mec='k', label='chosen')
-    ax.set_xscale('symlog', linthresh=0.5)
+    ax.set_xscale('symlog', linthresh=max(0.1, min([v for v in lambdas if v > 0] or [1.0])))
+    ax.set_xticks(lambdas)
+    ax.set_xticklabels([f'{v:g}' for v in lambdas])
+    ax.minorticks_off()
     ax.set_xlabel('λ (uncertainty penalty, per cell² of SDF variance)')
     ax.set_ylabel('held-out simulated success rate')
     ax.set_title(f'{len(cv.folds)}-fold cross-validation, {len(cv.objects)} objects')
