@@ -53,8 +53,10 @@ from gpis_grasp_ros.ros.conversions import rclpy_message_class
 _INFINITE_SEC = 2 ** 31 - 1  # rosbag2 stores "infinite" as 9223372036 s; anything this large is "default"
 #: Default bound (s) of the wait for subscribers before the first message.
 DEFAULT_WAIT = 5.0
-#: The matched/graph state must be unchanged this long (s) before playback starts.
-GRAPH_SETTLE = 0.3
+#: The matched/graph state (nodes seen, subscribers per topic) must be unchanged this long (s)
+#: before playback starts: endpoints of different nodes are discovered at different times, and a
+#: shorter settle (0.3 s) lost whole replays to a late-discovered segmentation_node on a loaded machine.
+GRAPH_SETTLE = 1.0
 CLOCK_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE)
 
@@ -262,7 +264,7 @@ class BagPlayer:
         last_state, stable_since = None, time.monotonic()
         while not self._stop.is_set():
             missing, any_matched = self.unmatched()
-            state = (tuple(sorted(missing.items())), any_matched)
+            state = (tuple(sorted(missing.items())), any_matched, len(self.node.get_node_names_and_namespaces()))
             now = time.monotonic()
             if state != last_state:
                 last_state, stable_since = state, now
