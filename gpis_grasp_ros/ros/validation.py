@@ -215,6 +215,12 @@ def check_gpis_model(msg: Any, limits: Limits) -> None:
         _finite_array('GpisModel.mean', msg.mean, low=-100 * diag, high=100 * diag)
     if _data_size(msg.variance):
         _finite_array('GpisModel.variance', msg.variance, low=0.0, high=100 * diag ** 2 + c)
+    for name in ('train_grad_x', 'train_grad', 'train_grad_noise_variance'):  # gradient observations, if any
+        data = getattr(msg, name, None)
+        if data is not None and _data_size(data):
+            if _data_size(data) > 4 * limits.max_grid_cells:
+                raise ValueError(f'GpisModel.{name} has {_data_size(data)} values, more than 4 * max_grid_cells')
+            _finite_array(f'GpisModel.{name}', data)
     com = msg.center_of_mass
     for axis in ('x', 'y', 'z'):
         _finite(f'GpisModel.center_of_mass.{axis}', getattr(com, axis))

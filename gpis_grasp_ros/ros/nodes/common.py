@@ -327,9 +327,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads
             if isinstance(node, GuardedNode):
                 node.begin_shutdown()
                 node.wait_idle(SHUTDOWN_GRACE)
-                time.sleep(0.1)  # let the executor send the last responses
+                time.sleep(0.05)  # let the executor send the last responses
         if executor is not None:
-            executor.shutdown(timeout_sec=0.2)
+            executor.shutdown(timeout_sec=0.1)
         if node is not None:
             try:
                 node.destroy_node()
@@ -337,7 +337,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads
                 pass
         rclpy.try_shutdown()
         if spinner is not None:
-            spinner.join(timeout=0.5)
+            spinner.join(timeout=0.1)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     # Everything that had to be answered was answered and ROS is shut down. Do not wait for a
