@@ -104,8 +104,9 @@ class Soak:
             module = f'gpis_grasp_ros.ros.nodes.{MODULES.get(name, name)}'
             log = self.workdir / f'{name}.log'
             self.logs[name] = log
-            self.procs[name] = subprocess.Popen([sys.executable, '-X', 'faulthandler', '-m', module, '--ros-args', *extra], env=self.env,
-                                                stdout=log.open('w'), stderr=subprocess.STDOUT, cwd=ROOT)
+            cmd = [sys.executable, '-X', 'faulthandler', '-m', module, '--ros-args', *extra]
+            self.procs[name] = subprocess.Popen(cmd, env=self.env, stdout=log.open('w'), stderr=subprocess.STDOUT,
+                                                cwd=ROOT)
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             if all('started;' in self.logs[n].read_text() for n in self.procs):
