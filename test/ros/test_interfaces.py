@@ -64,6 +64,8 @@ def test_gpis_model_round_trip_and_matches_rclpy(typestore):
         resolution=0.005, signal_variance=1.5e-4, length_scale=0.012, prior_mean=-0.01, jitter=1e-10,
         hyperparameters_optimized=True,
         train_x=rng.normal(size=2 * n), train_y=rng.normal(size=n), train_noise_variance=rng.random(n),
+        train_grad_x=rng.normal(size=4), train_grad_axis=np.array([0, 1], np.uint8), train_grad=rng.normal(size=2),
+        train_grad_noise_variance=rng.random(2),
         mean=rng.normal(size=cells), variance=rng.random(cells),
         center_of_mass=t['geometry_msgs/msg/Point'](x=0.11, y=0.21, z=0.69), center_of_mass_std=0.001)
     raw = ts.serialize_cdr(msg, 'gpis_grasp_interfaces/msg/GpisModel')
