@@ -86,15 +86,11 @@ class TableFrame:
 
     def to_table(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Camera-frame points ``(..., 3)`` → (table (x, y) of their orthographic foot ``(..., 2)``, height)."""
-        local = np.asarray(points, dtype=np.float64) @ self.rotation
-        return local[..., :2], self.offset_m - local[..., 2]
+        return self.grid(0.0, 0.0, 1.0, 1, 1).from_sensor(points)
 
     def to_camera(self, xy: np.ndarray, height: float | np.ndarray = 0.0) -> np.ndarray:
         """Table (x, y) ``(..., 2)`` at ``height`` above the plane → camera-frame points ``(..., 3)``."""
-        xy = np.asarray(xy, dtype=np.float64)
-        h = np.broadcast_to(np.asarray(height, dtype=np.float64), xy.shape[:-1])
-        local = np.concatenate([xy, (self.offset_m - h)[..., None]], axis=-1)
-        return local @ self.rotation.T
+        return self.grid(0.0, 0.0, 1.0, 1, 1).to_sensor(xy, height)
 
     def ray_intersection(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where camera rays ``(..., 3)`` (through the origin) meet the plane: (points (..., 3), hit mask).
