@@ -68,6 +68,7 @@ cancellation).
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -120,6 +121,11 @@ class ScpSettings:
     osqp_max_iter: int = 20000
     osqp_rho: float = 0.1
     osqp_rho_interval: int = 25
+    #: Objective evaluations are made in batches of at most this many points (0: one batch per call),
+    #: with ``poll`` called between batches. A row-wise ``fun`` gives the same values either way.
+    eval_chunk: int = 0
+    #: While a QP is solved (in a worker thread, only when ``poll`` is given) ``poll`` runs every this many s.
+    poll_interval: float = 0.02
 
 
 @dataclass
@@ -268,13 +274,18 @@ class ScpProgress:
 def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | None = None,
                  lower: np.ndarray | None = None, upper: np.ndarray | None = None,
                  record_history: bool = False,
-                 monitor: Callable[[ScpProgress], None] | None = None) -> ScpResult:
+                 monitor: Callable[[ScpProgress], None] | None = None,
+                 poll: Callable[[], None] | None = None) -> ScpResult:
     """Run SCP from each row of ``x0`` (R, n); see the module docstring.
 
     ``fun`` maps a batch of points (B, n) to objective values (B,) and constraint values (B, m)
     (``g <= 0`` is feasible). ``lower``/``upper`` are hard box bounds on x (kept exactly).
     ``monitor`` is called after every iteration with an :class:`ScpProgress`; it may raise to
     abort the run (cooperative cancellation: the exception propagates to the caller).
+    ``poll`` (finer-grained cancellation inside an iteration) is called between batches of
+    ``settings.eval_chunk`` objective evaluations and every ``settings.poll_interval`` s while the
+    batched QP is solved; it may raise to abort. The QP then runs in a worker thread (OSQP releases
+    the GIL) whose result is discarded on abort; the iterates are the same with or without ``poll``.
     """
     st = ScpSettings() if settings is None else settings
     x = np.array(x0, dtype=np.float64, ndmin=2)
@@ -286,13 +297,24 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
     evals = np.zeros(r, dtype=np.int64)
     timers = {'eval': 0.0, 'qp': 0.0}
 
-    def call(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def call_one(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t0 = time.perf_counter()
         fv, gv = fun(points)
         timers['eval'] += time.perf_counter() - t0
         fv = np.asarray(fv, dtype=np.float64).reshape(points.shape[0])
         gv = np.asarray(gv, dtype=np.float64).reshape(points.shape[0], -1)
         return fv, gv
+
+    def call(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        chunk = st.eval_chunk if st.eval_chunk > 0 else max(points.shape[0], 1)
+        parts = []
+        for start in range(0, points.shape[0], chunk):
+            if poll is not None:
+                poll()
+            parts.append(call_one(points[start:start + chunk]))
+        if len(parts) <= 1:
+            return parts[0] if parts else call_one(points)
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
     def derivatives(rows: np.ndarray, fv: np.ndarray, gv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Finite-difference gradient (k, n) and Jacobian (k, m, n) at x[rows]."""
@@ -345,8 +367,9 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
         hi = np.where(active[:, None], np.minimum(s[:, None], upper - x), 0.0)
         act = active[:, None]
         t0 = time.perf_counter()
-        d, lam, status = qp.solve(np.where(act, grad, 0.0), hess, np.where(active[:, None, None], jac, 0.0),
-                                  np.where(act, g, -1.0), np.where(active, mu, 1.0), lo, hi, np.where(active, s, 1.0))
+        d, lam, status = _polled(poll, st.poll_interval, qp.solve, np.where(act, grad, 0.0), hess,
+                                 np.where(active[:, None, None], jac, 0.0),
+                                 np.where(act, g, -1.0), np.where(active, mu, 1.0), lo, hi, np.where(active, s, 1.0))
         timers['qp'] += time.perf_counter() - t0
         qp_solves += 1
         iterations[active] += 1
@@ -440,6 +463,33 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
                      qp_time=timers['qp'], eval_time=timers['eval'], history=history,
                      objective_history=[np.asarray(h) for h in f_hist], merit_history=[np.asarray(h) for h in m_hist],
                      qp_failures=qp_failures, qp_status=qp_status)
+
+
+def _polled(poll: Callable[[], None] | None, interval: float, fn: Callable, *args):
+    """``fn(*args)``; with ``poll``, run it in a daemon thread and call ``poll`` every ``interval`` s
+    until it returns. If ``poll`` raises, the exception propagates at once and the thread's result
+    (computed on objects nobody uses any more) is discarded."""
+    if poll is None:
+        return fn(*args)
+    poll()
+    out: dict[str, object] = {}
+
+    def run() -> None:
+        try:
+            out['value'] = fn(*args)
+        except BaseException as exc:  # handed to the caller below
+            out['error'] = exc
+
+    worker = threading.Thread(target=run, name='scp-qp', daemon=True)
+    worker.start()
+    while True:
+        worker.join(interval)
+        if not worker.is_alive():
+            break
+        poll()
+    if 'error' in out:
+        raise out['error']
+    return out['value']
 
 
 def _damped_bfgs(b: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:
