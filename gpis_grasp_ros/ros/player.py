@@ -20,7 +20,11 @@
   every publisher is matched, and after each message on a RELIABLE publisher it waits until all
   matched subscribers acknowledged it. Best-effort topics cannot be paced that way; use
   ``reliable=True`` (``--reliable``) to publish every topic RELIABLE (still compatible with
-  best-effort subscribers) when no message may be lost.
+  best-effort subscribers) when no message may be lost. A reliable KEEP_LAST writer drops its
+  oldest not-yet-acknowledged message once ``depth`` newer ones are queued (the shipped bags record
+  depth 5 for 10 camera frames sent in 0.33 s: one slow repair of a lost fragment lost frames), so
+  ``reliable=True`` also raises each topic's history depth to its message count in the bag
+  (at most :data:`MAX_RELIABLE_DEPTH`).
 * Header stamps are left as recorded (2015 for the shipped bags).
 
 :class:`BagPlayer` is importable for tests and demos: give it a node (it adds publishers) or a
@@ -51,6 +55,9 @@ from gpis_grasp_ros.data import bagio
 from gpis_grasp_ros.ros.conversions import rclpy_message_class
 
 _INFINITE_SEC = 2 ** 31 - 1  # rosbag2 stores "infinite" as 9223372036 s; anything this large is "default"
+#: Largest writer history depth ``reliable=True`` asks for (messages of one topic kept until acknowledged).
+MAX_RELIABLE_DEPTH = 1000
+
 #: Default bound (s) of the wait for subscribers before the first message.
 DEFAULT_WAIT = 5.0
 #: The matched/graph state (nodes seen, subscribers per topic) must be unchanged this long (s)
@@ -113,7 +120,8 @@ class BagPlayer:
         loop: :meth:`play` repeats until :meth:`stop`.
         topics: topics to play (default all; with or without the leading '/').
         remap: recorded topic → published topic.
-        reliable: publish every topic RELIABLE (otherwise the recorded reliability).
+        reliable: publish every topic RELIABLE (otherwise the recorded reliability), with a history
+            depth of at least the topic's message count (up to :data:`MAX_RELIABLE_DEPTH`).
         wait_for_subscribers: seconds to wait at most before the first message until every topic
             with subscribers in the graph is matched (default :data:`DEFAULT_WAIT`; 0 = do not wait).
         clock: publish ``/clock`` with the bag time of each message.
@@ -162,6 +170,9 @@ class BagPlayer:
                 qos = qos_from_recorded(info[topic]['qos'])
                 if reliable:
                     qos.reliability = ReliabilityPolicy.RELIABLE
+                    count = int(info[topic].get('count', 0) or 0)
+                    if qos.history == HistoryPolicy.KEEP_LAST:
+                        qos.depth = max(qos.depth, min(count, MAX_RELIABLE_DEPTH))
                 msg_class = rclpy_message_class(info[topic]['type'])
                 self.qos[topic] = qos
                 self.publishers[topic] = self.node.create_publisher(msg_class, remap.get(topic, topic), qos)

@@ -171,7 +171,7 @@ class Soak:
         self.node.create_subscription(GpisModel, 'gpis/model', lambda m: models.append((time.monotonic(), m)),
                                       LATCHED_QOS)
         time.sleep(1.0)
-        rows, frames_used, gpis_delays, failures = [], [], [], 0
+        rows, frames_used, gpis_delays, failures, reasons = [], [], [], 0, []
         for bag in bags:
             for _ in range(passes):
                 n_status, n_models = len(status), len(models)
@@ -186,6 +186,9 @@ class Soak:
                 used = [int(m.group(1)) for s in new for m in [re.search(r'from (\d+) frames', s)] if m]
                 if player.returncode != 0 or len(models) == n_models or not used:
                     failures += 1
+                    tail = (player.stderr.strip().splitlines() or [''])[-1][:200]
+                    reasons.append(f'{bag.name}: player exit {player.returncode}, status {new[-1:] or "none"}, '
+                                   f'model {"yes" if len(models) > n_models else "no"}; {tail}')
                     continue
                 frames_used.append(used[0])
                 gpis_delays.append(models[n_models][0] - end)
@@ -196,6 +199,7 @@ class Soak:
             'frames_used_max': max(frames_used) if frames_used else 0,
             'gpis_after_player_exit_s_max': max(gpis_delays) if gpis_delays else float('nan'),
             'gpis_after_player_exit_s_p50': _percentile(gpis_delays, 50),
+            'failure_reasons': reasons,
         }
         self.last_model = models[-1][1] if models else None
 
@@ -350,7 +354,7 @@ class Soak:
         cli = self.plan_client()
         ok_set = self.set_param('planner_node', 'planning_timeout', 0.1)
         out: dict[str, Any] = {'set_at_run_time': ok_set, 'planning_timeout_s': 0.1}
-        for n_initial in (20, 200):
+        for n_initial in (20, 200, 500, 1000):
             timed_out, overshoot, waits = 0, [], []
             for k in range(slow):
                 res, latency = self.call(cli, GraspPlan.Request(method='gp-gpis-opt', num_initial_grasps=n_initial,

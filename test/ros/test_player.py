@@ -200,3 +200,22 @@ def test_main_plays_a_bag(bag, capsys):
     assert player.main([str(bag), '--rate', '0', '--wait-for-subscribers', '0', '--topics',
                         '/camera/rgb/camera_info']) == 0
     assert not rclpy.ok()
+
+
+def test_reliable_replay_keeps_every_frame_until_acknowledged(context):
+    """The shipped bags record depth 5 for 10 frames: a reliable KEEP_LAST 5 writer may drop its oldest
+    unacknowledged frame, so ``reliable=True`` deepens the history to the topic's message count."""
+    from pathlib import Path
+    shipped = Path(__file__).resolve().parents[2] / 'bags' / 'A_tape_dispenser.mcap'
+    info = bagio.bag_topics(shipped)
+    assert info['/camera/depth/points']['count'] == 10
+    assert all(q.depth == 5 for q in info['/camera/depth/points']['qos'])
+    for reliable, depth, policy in ((True, 10, ReliabilityPolicy.RELIABLE), (False, 5, ReliabilityPolicy.BEST_EFFORT)):
+        bp = player.BagPlayer(context, shipped, rate=0.0, reliable=reliable, wait_for_subscribers=0.0)
+        try:
+            for topic in ('/camera/depth/points', '/camera/rgb/image_raw'):
+                assert (bp.qos[topic].depth, bp.qos[topic].reliability) == (depth, policy)
+                assert bp.qos[topic].history == HistoryPolicy.KEEP_LAST
+            assert bp.qos['/ground_truth/sdf'].depth == 1  # one message: nothing to deepen
+        finally:
+            bp.destroy()
