@@ -125,13 +125,18 @@ class BagPlayer:
         wait_for_subscribers: seconds to wait at most before the first message until every topic
             with subscribers in the graph is matched (default :data:`DEFAULT_WAIT`; 0 = do not wait).
         clock: publish ``/clock`` with the bag time of each message.
+        require: recorded topics that must have a matched subscriber before playback starts (bounded
+            by ``wait_for_subscribers``). A process that joins a running graph discovers the other
+            processes one by one, some only at a later discovery announcement (seconds apart), so
+            "the graph has been stable for a moment" alone can start playback before a slow-to-discover
+            node's subscription is known; with a required topic that replay is not lost.
         ack_timeout: seconds to wait for acknowledgements of each message when ``rate == 0``.
     """
 
     def __init__(self, node_or_context: Node | Context | None, bag_path: str | Path, rate: float = 1.0,
                  loop: bool = False, topics: Iterable[str] | None = None, remap: Mapping[str, str] | None = None,
                  *, reliable: bool = False, wait_for_subscribers: float | None = None,
-                 ack_timeout: float = 5.0, clock: bool = False) -> None:
+                 ack_timeout: float = 5.0, clock: bool = False, require: Iterable[str] = ()) -> None:
         if not (rate >= 0):
             raise ValueError(f'rate must be >= 0 (0 = as fast as possible), got {rate}')
         self.bag_path = Path(bag_path)
@@ -142,6 +147,10 @@ class BagPlayer:
         self.ack_timeout = float(ack_timeout)
         self.wait_for_subscribers = DEFAULT_WAIT if wait_for_subscribers is None else float(wait_for_subscribers)
         info = bagio.bag_topics(self.bag_path)
+        self.require = sorted({_absolute(t) for t in require})
+        unknown = [t for t in self.require if t not in info]
+        if unknown:
+            raise ValueError(f"required topic(s) {', '.join(unknown)} not in the bag")
         if topics is None:
             selected = sorted(info)
         else:
@@ -280,7 +289,9 @@ class BagPlayer:
             if state != last_state:
                 last_state, stable_since = state, now
             unmatched_with_subs = any(n > 0 for n in missing.values())
-            if any_matched and not unmatched_with_subs and now - stable_since >= GRAPH_SETTLE:
+            unmet = [t for t in self.require
+                     if t in self.publishers and self.publishers[t].get_subscription_count() == 0]
+            if any_matched and not unmatched_with_subs and not unmet and now - stable_since >= GRAPH_SETTLE:
                 return
             if now >= deadline:
                 lonely = [t for t, n in missing.items() if n == 0]
@@ -290,6 +301,8 @@ class BagPlayer:
                     text.append(f"subscribers not yet matched on {', '.join(late)}")
                 if lonely and not any_matched:
                     text.append('no subscriber on any topic')
+                if unmet:
+                    text.append(f"no subscriber on required {', '.join(unmet)}")
                 if text:
                     self.node.get_logger().warning('; '.join(text) + f' after {self.wait_for_subscribers:g} s; '
                                                    'playing anyway')
@@ -356,6 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--wait-for-subscribers', type=float, default=None, metavar='SEC',
                    help=f'wait up to SEC until every topic with subscribers in the graph is matched '
                         f'(default {DEFAULT_WAIT:g}; 0 = do not wait)')
+    p.add_argument('--require', nargs='+', default=[], metavar='TOPIC',
+                   help='recorded topics that must have a matched subscriber before the first message '
+                        '(waited for up to --wait-for-subscribers s)')
     p.add_argument('--clock', action='store_true', help='publish /clock with the bag time of each message')
     p.add_argument('--keep-alive', action='store_true',
                    help='keep the (latched) publishers alive after playback until interrupted')
@@ -386,7 +402,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         node = rclpy.create_node('bag_player')
         player = BagPlayer(node, args.bag, rate=args.rate, loop=args.loop, topics=args.topics, remap=remap,
-                           reliable=args.reliable, wait_for_subscribers=args.wait_for_subscribers, clock=args.clock)
+                           reliable=args.reliable, wait_for_subscribers=args.wait_for_subscribers, clock=args.clock,
+                           require=args.require)
         player.play(blocking=False)
         executor = SingleThreadedExecutor()
         executor.add_node(node)

@@ -176,7 +176,8 @@ class Soak:
             for _ in range(passes):
                 n_status, n_models = len(status), len(models)
                 player = subprocess.run([sys.executable, '-m', 'gpis_grasp_ros.tools.cli', 'play', str(bag),
-                                         '--reliable'], env=self.env, cwd=ROOT, capture_output=True, text=True,
+                                         '--reliable', '--require', '/camera/depth/points'],
+                                        env=self.env, cwd=ROOT, capture_output=True, text=True,
                                         timeout=120)
                 end = time.monotonic()
                 deadline = end + 30

@@ -219,3 +219,26 @@ def test_reliable_replay_keeps_every_frame_until_acknowledged(context):
             assert bp.qos['/ground_truth/sdf'].depth == 1  # one message: nothing to deepen
         finally:
             bp.destroy()
+
+
+def test_required_topic_holds_playback_until_matched(context, executor, bag):
+    """``require``: playback waits for a subscriber on the topic even when other topics are matched."""
+    with pytest.raises(ValueError, match='not in the bag'):
+        player.BagPlayer(context, bag, require=['/no/such/topic'])
+    types = {t: v['type'] for t, v in bagio.bag_topics(bag).items()}
+    remap = {'/camera/depth/points': '/req_test/points', '/ground_truth/sdf': '/req_test/sdf'}
+    other = Recorder(context, executor, {'/req_test/sdf': types['/ground_truth/sdf']}, RELIABLE_DEEP, name='gt')
+    bp = player.BagPlayer(context, bag, rate=0.0, reliable=True, wait_for_subscribers=30.0, remap=remap,
+                          topics=list(remap), require=['camera/depth/points'])
+    try:
+        assert bp.require == ['/camera/depth/points']
+        bp.play_once(blocking=False)
+        time.sleep(2.0)  # longer than the graph settle that would otherwise start playback
+        assert not bp.done.is_set() and sum(bp.counts.values()) == 0 and other.wait_for(1, timeout=0.0) == 0
+        late = Recorder(context, executor, {'/req_test/points': types['/camera/depth/points']}, RELIABLE_DEEP,
+                        name='late_cloud')
+        assert late.wait_for(4) == 4  # every frame reaches the subscriber that arrived late
+        assert other.wait_for(1) == 1
+        assert bp.join(10.0) and bp.error is None
+    finally:
+        bp.destroy()
