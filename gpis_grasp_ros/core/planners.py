@@ -342,7 +342,8 @@ def mean_surface_points(mean: np.ndarray, geometry: GridGeometry) -> np.ndarray:
     return np.concatenate(pts, axis=0) if pts else np.zeros((0, 2))
 
 
-def sample_heuristic_grasps(ctx: PlanningContext, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def sample_heuristic_grasps(ctx: PlanningContext, n: int, rng: np.random.Generator,
+                            checkpoint: Callable[[], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Heuristic candidate grasps of VII-B, ``(n, 2)`` jaws each (m).
 
     A point p on the mean surface (:func:`surface_sample`); a direction u, with
@@ -366,8 +367,13 @@ def sample_heuristic_grasps(ctx: PlanningContext, n: int, rng: np.random.Generat
     half = math.hypot(g.width, g.height)  # cells: covers the grid from any surface point
     t = np.arange(-half, half + 0.25, 0.5)
     uv = g.to_cell(p)
-    vals = ctx.mean_bank.values_cells(uv[:, 0, None] + t[None] * u[:, 0, None],
-                                      uv[:, 1, None] + t[None] * u[:, 1, None])
+    vals = np.empty((n, t.size))
+    for a in range(0, n, 1024):  # batches (a stop check between them); the values are row-wise
+        if checkpoint is not None:
+            checkpoint()
+        b = a + 1024
+        vals[a:b] = ctx.mean_bank.values_cells(uv[a:b, 0, None] + t[None] * u[a:b, 0, None],
+                                               uv[a:b, 1, None] + t[None] * u[a:b, 1, None])
     neg = vals < 0
     has = neg.any(axis=1)
     t_lo = t[np.argmax(neg, axis=1)]
@@ -424,7 +430,7 @@ def sample_valid_grasps(ctx: PlanningContext, n: int, rng: np.random.Generator,
     found = 0
     for _ in range(ctx.params.max_sampling_rounds):
         check()
-        j1, j2 = sample_heuristic_grasps(ctx, max(2 * want, 16), rng)
+        j1, j2 = sample_heuristic_grasps(ctx, max(2 * want, 16), rng, checkpoint=check)
         check()
         ok = _valid_on_mean(ctx, j1, j2)
         j1s.append(j1[ok])

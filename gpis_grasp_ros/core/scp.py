@@ -466,9 +466,11 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
 
 
 def _polled(poll: Callable[[], None] | None, interval: float, fn: Callable, *args):
-    """``fn(*args)``; with ``poll``, run it in a daemon thread and call ``poll`` every ``interval`` s
+    """``fn(*args)``; with ``poll``, run it in a worker thread and call ``poll`` every ``interval`` s
     until it returns. If ``poll`` raises, the exception propagates at once and the thread's result
-    (computed on objects nobody uses any more) is discarded."""
+    (computed on objects nobody uses any more) is discarded. The thread is not a daemon: an
+    interpreter exiting right after a stop waits for the one QP in flight instead of tearing it
+    down mid-solve (which aborts the process)."""
     if poll is None:
         return fn(*args)
     poll()
@@ -480,7 +482,7 @@ def _polled(poll: Callable[[], None] | None, interval: float, fn: Callable, *arg
         except BaseException as exc:  # handed to the caller below
             out['error'] = exc
 
-    worker = threading.Thread(target=run, name='scp-qp', daemon=True)
+    worker = threading.Thread(target=run, name='scp-qp', daemon=False)
     worker.start()
     while True:
         worker.join(interval)
