@@ -62,7 +62,6 @@ import resource
 import sys
 import time
 import traceback
-import zlib
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -70,6 +69,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from gpis_grasp_ros.tools.seeds import derive_seed
 
 EXECUTORS = ('serial', 'process', 'dask')
 #: Columns that may differ between executors and runs (wall-clock times, worker identity, memory).
@@ -213,16 +214,6 @@ def to_truth_grid(xy: np.ndarray, planning: Any, truth: Any) -> np.ndarray:
     return truth.from_sensor(planning.to_sensor(np.asarray(xy, dtype=np.float64)))[0]
 
 
-def _derive_seed(*keys: int | str) -> int:
-    """A 64-bit seed from integers and strings (CRC-32 of strings, ``SeedSequence``): process independent.
-
-    The same derivation as the benchmark's ``derive_seed``, kept here so that workers do not import the
-    benchmark's plotting modules."""
-    words = [int(k) if isinstance(k, (int, np.integer)) else zlib.crc32(str(k).encode('utf-8')) for k in keys]
-    state = np.random.SeedSequence(words).generate_state(2, dtype=np.uint32)
-    return (int(state[0]) << 32) | int(state[1])
-
-
 def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
     """Run one task (pure: the same task gives the same row apart from :data:`TIMING_COLUMNS`)."""
     from gpis_grasp_ros.core.planners import execute_grasp_trials, plan
@@ -239,7 +230,7 @@ def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
         'alpha': float(params.antipodal_alpha), 'seed': int(task.seed), 'attempts': int(attempt),
     }
     model, cached = object_model(e, task.settings)
-    planner_seed = _derive_seed('planner', int(task.seed), e['id'])
+    planner_seed = derive_seed('planner', int(task.seed), e['id'])
     row.update({'planner_seed': planner_seed, 'mean_shape_iou': model.mean_shape_iou})
     nan = float('nan')
     result_cols = {'success': False, 'message': model.message, 'jaw1_x': nan, 'jaw1_y': nan, 'jaw2_x': nan,
@@ -262,7 +253,7 @@ def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
             succ = 0
             if r.success:
                 gripper = params.gripper.resolved(model.posterior.geometry)
-                rng = np.random.default_rng(_derive_seed('gripper', int(task.seed), e['id']))
+                rng = np.random.default_rng(derive_seed('gripper', int(task.seed), e['id']))
                 jaw1, jaw2 = (to_truth_grid(j, model.posterior.geometry, model.true_geometry) for j in (r.jaw1, r.jaw2))
                 succ = execute_grasp_trials(model.true_sdf, model.true_geometry, jaw1, jaw2, gripper, trials,
                                             rng, center_of_mass=model.true_com)

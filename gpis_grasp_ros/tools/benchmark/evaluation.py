@@ -9,7 +9,6 @@ import os
 import queue
 import sys
 import time
-import zlib
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ from gpis_grasp_ros.core.quality import ferrari_canny_l1, torque_scale
 from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.tools.benchmark.calibration import calibrate_object
+from gpis_grasp_ros.tools.seeds import derive_seed
 
 # ------------------------------------------------------------------------------------------
 # Methods, reference numbers, settings
@@ -128,13 +128,6 @@ class BenchmarkSettings:
         return PlannerParams(n_initial_grasps=self.n_initial_grasps, n_grasp_samples=self.grasp_samples,
                              n_shape_samples=self.shape_samples, uncertainty_penalty=self.uncertainty_penalty,
                              gp_p_adaptive=spec.gp_p_adaptive)
-
-
-def derive_seed(*keys: int | str) -> int:
-    """A 64-bit seed from integers and strings (strings hashed with CRC-32), process independent."""
-    words = [int(k) if isinstance(k, (int, np.integer)) else zlib.crc32(str(k).encode('utf-8')) for k in keys]
-    state = np.random.SeedSequence(words).generate_state(2, dtype=np.uint32)
-    return (int(state[0]) << 32) | int(state[1])
 
 
 def object_letter(name: str) -> str:
