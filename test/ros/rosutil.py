@@ -73,3 +73,25 @@ def wait_for(predicate: Callable[[], bool], timeout: float, period: float = 0.02
             return True
         time.sleep(period)
     return predicate()
+
+
+def segmentation_graph(ros: RosHarness, overrides: list) -> tuple:
+    """segmentation_node (reliable input, one frame per estimate, plus ``overrides``) and a probe that
+    records its latched grids and ``segmentation/status``; returns (node, grids, status, cloud publisher)."""
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import String
+
+    from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, RELIABLE_SENSOR_QOS
+    from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
+
+    node = ros.add(SegmentationNode(context=ros.context, parameter_overrides=[
+        Parameter('input_reliability', value='reliable'), Parameter('frames_to_average', value=1), *overrides]))
+    probe = ros.node('probe')
+    grids, status = [], []
+    probe.create_subscription(OccupancyGrid, 'object/occupancy', grids.append, LATCHED_QOS)
+    probe.create_subscription(String, 'segmentation/status', status.append, LATCHED_QOS)
+    pub = probe.create_publisher(PointCloud2, 'camera/depth/points', RELIABLE_SENSOR_QOS)
+    assert wait_for(lambda: pub.get_subscription_count() > 0, 5.0)
+    return node, grids, status, pub

@@ -13,10 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from nav_msgs.msg import OccupancyGrid
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import String
 
 from gpis_grasp_ros.core.contacts import bilinear
 from gpis_grasp_ros.core.grid import quaternion_to_rotation
@@ -25,10 +23,9 @@ from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.ros import conversions
-from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, RELIABLE_SENSOR_QOS
 from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
 from gpis_grasp_ros.tools.import_rgbd import evaluate_bag
-from rosutil import RosHarness, wait_for
+from rosutil import RosHarness, segmentation_graph, wait_for
 
 REAL = Path(__file__).resolve().parents[2] / 'bags' / 'real'
 BOTTLE = REAL / 'cleargrasp_000000080_bottle.mcap'
@@ -95,16 +92,9 @@ def _run_node(path: Path) -> tuple[list, list, SegmentationNode]:
     """segmentation_node on one bag's cloud with its target pixel; returns the grids and statuses seen."""
     ros = RosHarness()
     try:
-        node = ros.add(SegmentationNode(context=ros.context, parameter_overrides=[
-            Parameter('input_reliability', value='reliable'), Parameter('frames_to_average', value=1),
+        node, grids, status, pub = segmentation_graph(ros, [
             Parameter('sensor_model', value='realsense_d400'), Parameter('target', value='pixel'),
-            Parameter('target_point', value=list(TARGETS[path]))]))
-        probe = ros.node('probe')
-        grids, status = [], []
-        probe.create_subscription(OccupancyGrid, 'object/occupancy', grids.append, LATCHED_QOS)
-        probe.create_subscription(String, 'segmentation/status', status.append, LATCHED_QOS)
-        pub = probe.create_publisher(PointCloud2, 'camera/depth/points', RELIABLE_SENSOR_QOS)
-        assert wait_for(lambda: pub.get_subscription_count() > 0, 5.0)
+            Parameter('target_point', value=list(TARGETS[path]))])
         pub.publish(_cloud(path, 1))
         assert wait_for(lambda: bool(status), 60.0)
         wait_for(lambda: bool(grids), 1.0)

@@ -7,19 +7,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from nav_msgs.msg import OccupancyGrid
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import String
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
 from tilted_scene import Box, TiltedScene  # noqa: E402
 
 from gpis_grasp_ros.data import messages  # noqa: E402
 from gpis_grasp_ros.ros import conversions  # noqa: E402
-from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, RELIABLE_SENSOR_QOS  # noqa: E402
-from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode  # noqa: E402
-from rosutil import RosHarness, wait_for  # noqa: E402
+from rosutil import RosHarness, segmentation_graph, wait_for  # noqa: E402
 
 F = conversions.RclpyFactory()
 
@@ -51,14 +47,7 @@ def _run(overrides: list[Parameter], clouds: list[PointCloud2]) -> tuple[list, l
     """One segmentation_node fed ``clouds`` one at a time (waiting for each outcome)."""
     ros = RosHarness()
     try:
-        ros.add(SegmentationNode(context=ros.context, parameter_overrides=[
-            Parameter('input_reliability', value='reliable'), Parameter('frames_to_average', value=1)] + overrides))
-        probe = ros.node('probe')
-        grids, status = [], []
-        probe.create_subscription(OccupancyGrid, 'object/occupancy', grids.append, LATCHED_QOS)
-        probe.create_subscription(String, 'segmentation/status', status.append, LATCHED_QOS)
-        pub = probe.create_publisher(PointCloud2, 'camera/depth/points', RELIABLE_SENSOR_QOS)
-        assert wait_for(lambda: pub.get_subscription_count() > 0, 5.0)
+        _, grids, status, pub = segmentation_graph(ros, overrides)
         for k, cloud in enumerate(clouds):
             pub.publish(cloud)
             assert wait_for(lambda k=k: len(status) > k, 30.0), f'no status for cloud {k}'
