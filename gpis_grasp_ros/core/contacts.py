@@ -69,11 +69,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from gpis_grasp_ros.core.contact_kernel import exact_contacts
 from gpis_grasp_ros.core.grid import GridGeometry
 
 #: Interpolated points per chunk in :func:`find_contacts`: small enough for the temporaries to stay in
 #: cache (about 2x faster than large chunks), large enough to amortise the Python overhead.
 MAX_POINTS_PER_CHUNK = 1 << 16
+
+#: Trials per call of the compiled kernel (:mod:`contact_kernel`), which needs no large temporaries.
+KERNEL_TRIALS_PER_CHUNK = 1 << 14
 
 #: March step (cells) for lines that leave the padded grid when crossings are otherwise exact.
 OFF_GRID_STEP_CELLS = 0.1
@@ -270,7 +274,9 @@ class SdfBank:
         # (a 16-byte element for float32), ~1.5x faster than 4 gathers when lookups miss the cache.
         self._coef_dtype = np.dtype(dtype)
         record = _RECORD[self._coef_dtype.char]
-        self._coef_rec = _coefficient_records(_pad_extrapolated(sdfs, self.pad, res), dtype).view(record).reshape(-1)
+        #: float64 padded grids (B, Hp, Wp) read by the compiled kernel (:mod:`contact_kernel`)
+        self.padded = np.ascontiguousarray(_pad_extrapolated(sdfs, self.pad, res))
+        self._coef_rec = _coefficient_records(self.padded, dtype).view(record).reshape(-1)
         self._cells_padded = self._ph * self._pw
         self._float_index_exact = self.n * self._cells_padded < 2 ** 24
         self._grad_rec = tuple(_coefficient_records(gc, dtype).view(record).reshape(-1) for gc in (gx, gy))
@@ -441,11 +447,14 @@ def perturb_grasps(jaw1: np.ndarray, jaw2: np.ndarray, eps: np.ndarray,
 
 
 def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams,
-                  index: np.ndarray | None = None, check_opening: bool = True) -> Contacts:
+                  index: np.ndarray | None = None, check_opening: bool = True, compiled: bool = True) -> Contacts:
     """Contacts of jaws closing from ``jaw1`` and ``jaw2`` (m, shape ``(..., 2)``) on SDFs of ``bank``.
 
     ``index`` (int array broadcastable to the leading shape, or None for grid 0) selects which
     grid of the bank each trial closes on. See the module docstring for the algorithm.
+    ``compiled=False`` finds the exact crossings with the vectorised numpy implementation (float32,
+    every cell of every line) instead of the compiled kernel: the independent reference the tests
+    compare the kernel against; both implement the same model.
     """
     jaw1 = np.asarray(jaw1, dtype=np.float64)
     jaw2 = np.asarray(jaw2, dtype=np.float64)
@@ -473,6 +482,9 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     n_work = int(math.ceil(math.sqrt(2.0) * float(length.max(initial=0.0)))) + 3 if gripper.exact_crossings \
         else n_steps
     chunk = max(1, MAX_POINTS_PER_CHUNK // (n_lines * n_work))
+    use_kernel = compiled and gripper.exact_crossings
+    if use_kernel:  # the kernel needs no temporaries: chunks only bound the off-grid fallback's memory
+        chunk = max(chunk, KERNEL_TRIALS_PER_CHUNK)
 
     if t_total == 0:
         e2, e1 = np.zeros((0, 2)), np.zeros(0)
@@ -483,7 +495,7 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
                         clearance1=e1.reshape(lead), clearance2=e1.reshape(lead), no_normal=none.reshape(lead))
     parts = [_march_chunk(bank, a[s:s + chunk], unit[s:s + chunk], length[s:s + chunk], n_seg[s:s + chunk],
                           offsets, n_steps, None if idx is None else idx[s:s + chunk], gripper.patch_cells(g),
-                          gripper.exact_crossings)
+                          gripper.exact_crossings, use_kernel)
              for s in range(0, t_total, chunk)]
     if len(parts) == 1:
         c, no_contact, inside, clear = parts[0]
@@ -699,12 +711,32 @@ def _exact_on_padded(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.nda
     return np.stack([t_first, t_last]), has, no_contact, inside, clear
 
 
+def _kernel_on_padded(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray, offsets: np.ndarray,
+                      idx: np.ndarray | None, patch_tol: float):
+    """Contacts (2, T, 2) (cells), no-contact and start-inside flags (T,), clearances (2, T) (m) of
+    trials whose face lines all lie on the padded grid, by the compiled kernel."""
+    n_t = a.shape[0]
+    index = np.zeros(n_t, dtype=np.intp) if idx is None else np.ascontiguousarray(idx, dtype=np.intp)
+    c = np.empty((2, n_t, 2))
+    no_contact = np.empty(n_t, dtype=bool)
+    inside = np.empty(n_t, dtype=bool)
+    clear = np.empty((2, n_t))
+    exact_contacts(bank.padded, index, np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]),
+                   np.ascontiguousarray(unit[:, 0]), np.ascontiguousarray(unit[:, 1]),
+                   np.ascontiguousarray(length, dtype=np.float64), np.ascontiguousarray(offsets, dtype=np.float64),
+                   float(bank.pad), float(patch_tol), c, no_contact, inside, clear)
+    return c, no_contact, inside, clear
+
+
 def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray, n_seg: np.ndarray,
-                 offsets: np.ndarray, n_steps: int, idx: np.ndarray | None, patch_tol: float, exact: bool = True):
+                 offsets: np.ndarray, n_steps: int, idx: np.ndarray | None, patch_tol: float, exact: bool = True,
+                 compiled: bool = False):
     """March one chunk of T trials along L face lines with N samples each (all in cell units).
 
     Returns contact points (2, T, 2) in cells for jaw 1 and jaw 2, the no-contact and
-    start-inside flags (T,) and the clearances (2, T) (m) of both jaw faces.
+    start-inside flags (T,) and the clearances (2, T) (m) of both jaw faces. With ``compiled``
+    (exact crossings only) trials on the padded grid go through the compiled kernel and the
+    others through this function's sampled march.
     """
     n_lines = offsets.size
     perp = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
@@ -720,6 +752,24 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
     on_t = ((lo >= -pad).all(axis=1) & (hi[:, 0] <= bank.geometry.width - 1 + pad)
             & (hi[:, 1] <= bank.geometry.height - 1 + pad))
     on_padded = bool(on_t.all())
+    if exact and compiled:
+        if on_padded:
+            return _kernel_on_padded(bank, a, unit, length, offsets, idx, patch_tol)
+        c = np.zeros((2, a.shape[0], 2))
+        no_contact = np.zeros(a.shape[0], dtype=bool)
+        inside = np.zeros(a.shape[0], dtype=bool)
+        clear = np.zeros((2, a.shape[0]))
+        for rows, kernel in ((np.flatnonzero(on_t), True), (np.flatnonzero(~on_t), False)):
+            if rows.size == 0:
+                continue
+            sub_idx = None if idx is None else idx[rows]
+            if kernel:
+                out = _kernel_on_padded(bank, a[rows], unit[rows], length[rows], offsets, sub_idx, patch_tol)
+            else:  # leaves the padded grid: the reference path (it marches those lines every OFF_GRID_STEP_CELLS)
+                out = _march_chunk(bank, a[rows], unit[rows], length[rows], n_seg[rows], offsets, n_steps, sub_idx,
+                                   patch_tol, exact=True, compiled=False)
+            c[:, rows], no_contact[rows], inside[rows], clear[:, rows] = out
+        return c, no_contact, inside, clear
     if not exact:
         return_vals = _sampled_crossings(bank, ox, oy, unit, length, n_seg, n_steps, idx, on_padded)
     elif on_padded:
