@@ -1,7 +1,8 @@
 """``gpis-grasp tune``: k-fold cross-validation of λ and α on a dataset (issue 13, paper section VI-A).
 
     gpis-grasp tune --dataset DIR --out DIR --lambda 0,0.5,1,2,4,8 --alpha 0.25,0.5,1,2 --folds 5
-                    [--method gp-gpis-opt] [--seeds 1] [--executor serial|process|dask] [--workers N] ...
+                    [--method gp-gpis-opt] [--seeds 1] [--executor serial|process|dask] [--workers N]
+                    [--reuse EVAL_DIR] ...
 
 **What is tuned.** λ is ``uncertainty_penalty`` of :class:`~gpis_grasp_ros.core.planners.PlannerParams`,
 the penalty on the SDF variance at the contacts in eq. 4/6 (per cell² of variance; the paper picks
@@ -26,6 +27,15 @@ with the best mean held-out score over the folds (the usual CV estimate); its sp
 per-fold choices and by a bootstrap over objects (how often each λ wins when the objects are
 resampled). Outputs in ``--out``: ``tune.md`` (tables), ``tune.json``, ``cv_scores.csv``,
 ``tune.png`` (held-out score vs λ per α, mean ± std over folds) and the task results in ``runs/``.
+``tune.md`` also breaks the mean success per setting down by material class, size class and
+camera (:func:`class_table`): which kind of object a λ helps or hurts.
+
+**Reusing an evaluation.** ``--reuse DIR`` takes the rows of an earlier ``gpis-grasp evaluate`` (or
+tune ``runs/``) folder that are tasks of this tune — same dataset digest and settings (``run.json``),
+same method, object, seed, λ and α (a default λ/α is matched by its value) — instead of running them
+again (:func:`reuse_rows`): e.g. the λ = 2 column of a tune is the GP-GPIS-OPT column of an
+evaluation at the default λ. Rows are identical whatever the run (see :mod:`~gpis_grasp_ros.tools.evaluate`)
+as long as the code is the same; each reused row records its source in ``reused_from``.
 """
 
 from __future__ import annotations
@@ -166,6 +176,70 @@ def report_markdown(cv: CvResult) -> str:
     return '\n'.join(lines)
 
 
+CLASS_DIMENSIONS = ('material_class', 'size_class', 'camera')
+
+
+def class_table(rows: Sequence[dict[str, Any]], cv: CvResult, by: Sequence[str] = CLASS_DIMENSIONS) -> str:
+    """Mean success (all cross-validated objects of a class) per setting, by material, size and camera.
+
+    Not a cross-validated figure: it shows where the settings differ (e.g. whether a larger λ helps
+    on transparent objects and hurts on opaque ones), not which one to choose."""
+    info: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        info.setdefault(r['object'], r)
+    one_alpha = len({a for _, a in cv.settings}) == 1
+    names = [f'λ={lam:g}' if one_alpha else f'λ={lam:g}, α={a:g}' for lam, a in cv.settings]
+    lines = [f"| class | objects | {' | '.join(names)} | best |", '|---' * (len(names) + 3) + '|']
+    for dim in by:
+        for g in sorted({str(info[o].get(dim, '')) for o in cv.objects}):
+            idx = [i for i, o in enumerate(cv.objects) if str(info[o].get(dim, '')) == g]
+            mean = cv.scores[idx].mean(axis=0)
+            best = ', '.join(names[j] for j in np.flatnonzero(mean >= mean.max() - 1e-12))
+            lines.append(f"| {dim}: {g} | {len(idx)} | {' | '.join(f'{v:.3f}' for v in mean)} | {best} |")
+    return '\n'.join(lines)
+
+
+def reuse_rows(source: str | Path, tasks: Sequence[ev.Task], dataset_digest: str) -> list[dict[str, Any]]:
+    """Rows of an earlier run folder that are exactly tasks of this tune, relabelled with their task ids.
+
+    The folder's ``run.json`` must record the same settings and dataset digest as ``tasks``;
+    a row matches a task by object, method, seed and the λ, α values the planner used."""
+    src = Path(source)
+    run_json = src / 'run.json'
+    if not run_json.exists():
+        raise ValueError(f'--reuse {src}: no run.json (not an evaluate/tune results folder)')
+    if json.loads(run_json.read_text(encoding='utf8')) != ev.fingerprint(tasks, dataset_digest):
+        raise ValueError(f'--reuse {src}: it was run with other settings or on another dataset (see {run_json})')
+    from gpis_grasp_ros.core.planners import PlannerParams
+
+    d = PlannerParams()
+    want = {(t.entry['id'], t.method, int(t.seed),
+             float(d.uncertainty_penalty if t.uncertainty_penalty is None else t.uncertainty_penalty),
+             float(d.antipodal_alpha if t.antipodal_alpha is None else t.antipodal_alpha)): t.task_id for t in tasks}
+    out = []
+    for r in ev.read_results(src):
+        tid = want.get((r['object'], r['method'], int(r['seed']), float(r['lambda']), float(r['alpha'])))
+        if tid is not None:
+            out.append({**r, 'task_id': tid, 'reused_from': str(src)})
+    return out
+
+
+def add_reused(out: Path, tasks: Sequence[ev.Task], sources: Sequence[str], dataset_digest: str,
+               fresh: bool) -> int:
+    """Append the reusable rows of ``sources`` that ``out`` does not hold yet; how many were added."""
+    files = ev._prepare_out(out, ev.fingerprint(tasks, dataset_digest), fresh)
+    have = {r['task_id'] for r in ev.read_results(files.results)}
+    added = 0
+    with open(files.results, 'a', encoding='utf8') as fh:
+        for src in sources:
+            for r in reuse_rows(src, tasks, dataset_digest):
+                if r['task_id'] not in have:
+                    fh.write(json.dumps(r, sort_keys=True) + '\n')
+                    have.add(r['task_id'])
+                    added += 1
+    return added
+
+
 def plot(cv: CvResult, path: Path) -> None:
     """Held-out success vs λ (symlog x), one line per α, mean ± std over folds; chosen setting ringed."""
     import matplotlib
@@ -197,8 +271,11 @@ def plot(cv: CvResult, path: Path) -> None:
     plt.close(fig)
 
 
-def write_outputs(cv: CvResult, out: Path) -> str:
+def write_outputs(cv: CvResult, out: Path, rows: Sequence[dict[str, Any]] = ()) -> str:
     text = report_markdown(cv)
+    if rows:
+        text += '\n\nMean success by class (all cross-validated objects; not itself cross-validated):\n\n' + \
+            class_table(rows, cv)
     (out / 'tune.md').write_text(text + '\n', encoding='utf8')
     lam_c, a_c = cv.settings[cv.chosen]
     (out / 'tune.json').write_text(json.dumps({
@@ -226,6 +303,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--folds', type=int, default=5)
     p.add_argument('--cv-seed', type=int, default=0, help='seed of the fold split and the bootstrap')
     p.add_argument('--method', default='gp-gpis-opt', help='planner whose λ/α are tuned (default: %(default)s)')
+    p.add_argument('--reuse', action='append', default=[], metavar='DIR',
+                   help='take matching task rows from this earlier evaluate/tune results folder (same settings '
+                        'and dataset) instead of running them; may be repeated')
     return p.parse_args(argv)
 
 
@@ -242,13 +322,20 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f'--folds {args.folds} is more than the {len(entries)} objects of the dataset')
         tasks = ev.make_tasks(entries, [args.method], range(max(1, args.seeds)), args.lambdas, args.alphas,
                               ev.settings_from_args(args))
-        run = ev.run_evaluation(tasks, out / 'runs', args.executor, args.workers, args.scheduler, fresh=args.fresh,
+        fresh = args.fresh
+        reused = 0
+        if args.reuse:
+            reused = add_reused(out / 'runs', tasks, args.reuse, digest, fresh)
+            fresh = False
+        run = ev.run_evaluation(tasks, out / 'runs', args.executor, args.workers, args.scheduler, fresh=fresh,
                                 progress=not args.no_progress, dataset_digest=digest, affinity=args.affinity)
         cv = run_cv(run.rows, args.lambdas, args.alphas, args.folds, args.cv_seed)
     except ValueError as err:
         print(f'gpis-grasp tune: {err}', file=sys.stderr)
         return 2
-    print(write_outputs(cv, out))
+    print(write_outputs(cv, out, run.rows))
+    print(f'\n{len(tasks)} tasks: {run.ran} run now, {run.resumed - reused} from earlier runs in this folder, '
+          f'{reused} reused from {", ".join(args.reuse) or "-"}')
     print(f'\nwrote {out / "tune.md"}, {out / "tune.png"}, {out / "cv_scores.csv"}; task results in {out / "runs"}')
     if run.failures:
         print(f'gpis-grasp tune: {len(run.failures)} task(s) failed after retry (see '

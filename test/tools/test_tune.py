@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from gpis_grasp_ros.sim import dataset as ds
+from gpis_grasp_ros.tools import evaluate as ev
 from gpis_grasp_ros.tools import tune
 
 
@@ -78,21 +79,48 @@ def test_ties_go_to_the_smaller_lambda_and_unusable_objects_are_left_out():
 def test_tune_command_end_to_end(tmp_path, capsys):
     data = ds.make_dataset(tmp_path / 'set', 4, seed=5)
     out = tmp_path / 'tune'
-    args = ['--dataset', str(data.root), '--out', str(out), '--lambda', '0,8', '--alpha', '0.5', '--folds', '2',
-            '--grid-size', '12', '--frames', '2', '--grasp-samples', '20', '--shape-samples', '20',
+    tiny = ['--grid-size', '12', '--frames', '2', '--grasp-samples', '20', '--shape-samples', '20',
             '--initial-grasps', '2', '--trials', '8', '--no-progress']
-    assert tune.main(args) == 0
+    # an evaluation of GP-GPIS-OPT at the default λ (2) and α (0.5): the λ = 2 column of the tune
+    evaluation = tmp_path / 'eval'
+    assert ev.main(['--dataset', str(data.root), '--out', str(evaluation), '--methods', 'gp-g'] + tiny) == 0
+    evaluated = {r['object']: r for r in ev.read_results(evaluation)}
+    assert {(r['lambda'], r['alpha']) for r in evaluated.values()} == {(2.0, 0.5)}
+    capsys.readouterr()
+    args = ['--dataset', str(data.root), '--out', str(out), '--lambda', '0,2', '--alpha', '0.5', '--folds', '2'] + tiny
+    assert tune.main(args + ['--reuse', str(evaluation)]) == 0
     text = capsys.readouterr().out
     assert 'Chosen by 2-fold cross-validation' in text
+    assert '8 tasks: 4 run now, 0 from earlier runs in this folder, 4 reused' in text
     result = json.loads((out / 'tune.json').read_text())
-    assert (result['chosen']['lambda'], result['chosen']['alpha']) in [(0.0, 0.5), (8.0, 0.5)]
+    assert (result['chosen']['lambda'], result['chosen']['alpha']) in [(0.0, 0.5), (2.0, 0.5)]
     assert len(result['fold_choice']) == 2
     image = cv2.imread(str(out / 'tune.png'))
     assert image is not None and image.shape[0] > 200 and image.shape[1] > 300 and image.std() > 5
     runs = [json.loads(x) for x in (out / 'runs' / 'results.jsonl').read_text().splitlines()]
     assert len(runs) == 8 and {r['method'] for r in runs} == {'gp-gpis-opt'}
-    assert {r['lambda'] for r in runs} == {0.0, 8.0}
-    # running it again resumes every task
+    assert {r['lambda'] for r in runs} == {0.0, 2.0}
+    # the reused rows are the evaluation's, relabelled with the tune's task ids
+    for r in runs:
+        if r['lambda'] == 2.0:
+            assert r['reused_from'] == str(evaluation) and r['task_id'].endswith('|lambda=2.0|alpha=0.5|seed=0')
+            assert {k: v for k, v in r.items() if k not in ('task_id', 'reused_from')} == \
+                {k: v for k, v in evaluated[r['object']].items() if k != 'task_id'}
+        else:
+            assert 'reused_from' not in r
+    # the class breakdown covers every cross-validated object once per dimension
+    assert 'Mean success by class' in text
+    for dim in tune.CLASS_DIMENSIONS:
+        counts = [int(line.split('|')[2]) for line in text.splitlines() if line.startswith(f'| {dim}: ')]
+        assert sum(counts) == len(result['objects'])
+    # running it again resumes every task; nothing is reused twice
     assert tune.main(args) == 0
+    assert '8 tasks: 0 run now, 8 from earlier runs in this folder, 0 reused' in capsys.readouterr().out
     assert tune.main(args[:-1] + ['--no-progress', '--folds', '9']) == 2
     assert tune.main(['--dataset', str(data.root), '--out', str(out), '--alpha', '-1']) == 2
+    # a folder run with other settings is refused
+    other = ['--out', str(tmp_path / 'other'), '--trials', '9']
+    assert tune.main(args + other + ['--reuse', str(out / 'runs')]) == 2
+    assert 'other settings' in capsys.readouterr().err
+    assert tune.main(args + other + ['--reuse', str(tmp_path / 'set')]) == 2
+    assert 'no run.json' in capsys.readouterr().err
