@@ -111,6 +111,7 @@ TARGET_MODES = ('largest', 'nearest_center', 'pixel', 'table')
 MISSING_HEIGHT_WINDOW_M = 0.02
 MISSING_BRIDGE_M = 0.05  # a hole region this small joins the objects it touches (m)
 MISSING_ATTACH_M = 0.01  # holes belong to an object within this distance of its seen parts (m)
+OBJECT_HEIGHT_PERCENTILE = 95.0  # measured object height: this percentile of its depth-seen heights
 
 
 @dataclass(frozen=True)
@@ -266,6 +267,7 @@ class SensingResult:
     disagreement_px: np.ndarray  # (H, W) float rho
     bbox_px: tuple[int, int, int, int]  # (u_min, v_min, u_max, v_max) of the target, inclusive
     intrinsics: CameraIntrinsics
+    object_height: float = 0.0  # m above the table, measured (:func:`object_height`); 0 = unknown
 
     @property
     def sdf(self) -> np.ndarray:
@@ -434,6 +436,23 @@ def _missing_height(height: np.ndarray, above: np.ndarray, footprint_m: float,
     total = cv2.boxFilter(h, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
     count = cv2.boxFilter(above.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
     return np.where(count >= 3, total / np.maximum(count, 1.0), 0.0).astype(np.float64)
+
+
+def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJECT_HEIGHT_PERCENTILE,
+                  min_pixels: int = 10) -> float:
+    """Height (m) of an object above the table: the ``percentile`` of the heights (m, along the table normal)
+    of its pixels ``seen`` in depth above the table; 0 (unknown) with fewer than ``min_pixels`` of them.
+
+    A high percentile rather than the maximum: the top face (or the crest of a lying cylinder) is the
+    highest part seen, and 5 % of the pixels may be depth outliers (flying pixels at edges). Parts
+    without a depth return (specular, or transparent ones the sensor sees through: their depth is the
+    table's) are not measured, so an object seen only through holes and colour has an unknown height,
+    and one whose top is entirely specular is measured by its highest seen part (its walls)."""
+    h = np.asarray(height, dtype=np.float64)[np.asarray(seen, dtype=bool)]
+    h = h[np.isfinite(h)]
+    if h.size < max(1, min_pixels):
+        return 0.0
+    return max(0.0, float(np.percentile(h, percentile)))
 
 
 def _nearest_label(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -882,4 +901,5 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         objects_seen=objects_seen, mean_depth=z_mean, valid_count=count.astype(np.int64), height=height,
         depth_mask=p_d > 0.5, rgb_mask=p_c > 0.5, missing_mask=missing_px, object_mask=target_px,
         labels_px=px_labels, occupancy_px=occ, noise_px=noise_px, disagreement_px=rho,
-        bbox_px=(int(us.min()), int(vs.min()), int(us.max()), int(vs.max())), intrinsics=intrinsics)
+        bbox_px=(int(us.min()), int(vs.min()), int(us.max()), int(vs.max())), intrinsics=intrinsics,
+        object_height=object_height(height, target_px & valid & (p_d > 0.5)))

@@ -22,6 +22,7 @@ arrays are ``float32`` metres with NaN for "no return".
 from __future__ import annotations
 
 import array
+import math
 from dataclasses import replace
 from typing import Any, Protocol
 
@@ -410,15 +411,20 @@ def polygon_stamped_to_numpy(msg: Any) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- GPIS model
-def posterior_to_gpis_model(posterior: Any, header: Any, f: MessageFactory, com_samples: int = 200) -> Any:
+def posterior_to_gpis_model(posterior: Any, header: Any, f: MessageFactory, com_samples: int = 200,
+                            object_height: float = 0.0) -> Any:
     """:class:`~gpis_grasp_ros.core.gpis.GpisPosterior` → ``gpis_grasp_interfaces/GpisModel``.
 
     Carries the kernel, the training data - values and gradient observations - (so a consumer can rebuild the
     exact posterior with
     :func:`gpis_model_to_posterior`), mean and variance on the grid, and the centre of mass of the
-    mean shape with its RMS spread over ``com_samples`` posterior samples (seeded, deterministic).
+    mean shape with its RMS spread over ``com_samples`` posterior samples (seeded, deterministic), and the
+    object's measured ``object_height`` (m above the table, 0 = unknown; not part of the posterior).
     ``f`` builds the messages (rosbags or rclpy flavour). Lengths in m, variances in m^2.
     """
+    height = float(object_height)
+    if not (math.isfinite(height) and height >= 0):
+        raise ValueError(f'object_height must be a finite height >= 0 m (0 = unknown), got {object_height}')
     g = posterior.geometry
     p = posterior.params
     com_xy = np.asarray(posterior.center_of_mass(), dtype=np.float64)
@@ -440,7 +446,13 @@ def posterior_to_gpis_model(posterior: Any, header: Any, f: MessageFactory, com_
         mean=f.seq(np.asarray(posterior.mean, dtype=np.float64), np.float64),
         variance=f.seq(np.asarray(posterior.variance, dtype=np.float64), np.float64),
         center_of_mass=f.new('geometry_msgs/msg/Point', x=float(com_xy[0]), y=float(com_xy[1]), z=float(g.z)),
-        center_of_mass_std=com_std)
+        center_of_mass_std=com_std, object_height=height)
+
+
+def gpis_model_object_height(msg: Any) -> float:
+    """``GpisModel.object_height`` (m above the table) or 0 (unknown) when absent, non-finite or negative."""
+    height = float(getattr(msg, 'object_height', 0.0) or 0.0)
+    return height if math.isfinite(height) and height > 0 else 0.0
 
 
 def gpis_model_to_posterior(msg: Any) -> Any:

@@ -7,7 +7,7 @@ import pytest
 from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.noise_model import SensorModel
-from gpis_grasp_ros.core.sensing import SensingParams, minimum_width, segment_frames
+from gpis_grasp_ros.core.sensing import SensingParams, minimum_width, object_height, segment_frames
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 BOX = Box(0.0, 0.0, 0.03, 0.02, 0.04)
@@ -59,6 +59,33 @@ def test_box_footprint_is_recovered_at_every_tilt(tilted):
     assert result.objects_seen == 1
     # the grid is square around the footprint (6 cm + 2 x 20 % margin)
     assert result.geometry.size_m[0] == pytest.approx(0.06 * 1.4, rel=0.12)
+
+
+def test_object_height_is_measured_at_every_tilt(tilted):
+    """The 4 cm box's height above the fitted plane (95th percentile of its depth-seen heights) within 3 mm."""
+    scene, result = tilted
+    assert result.object_height == pytest.approx(BOX.height, abs=0.003)
+
+
+def test_object_height_of_a_flat_box_and_unknown_without_depth():
+    """A 1.2 cm box at 50 degrees is measured as such; an object with no depth seen above the table has height 0."""
+    flat = Box(0.0, 0.0, 0.03, 0.02, 0.012)
+    scene = TiltedScene(50.0, boxes=[flat])
+    rgb, depth, label = scene.frames(10, seed=3)
+    assert segment_frames(rgb, depth, scene.intrinsics).object_height == pytest.approx(0.012, abs=0.003)
+    # the same box with every return on it lost (a specular object): evidence from the holes only
+    holes = np.where((label == 1)[None], np.nan, depth)
+    result = segment_frames(rgb, holes, scene.intrinsics)
+    assert result.object_mask.any() and result.object_height == 0.0
+
+
+def test_object_height_percentile_ignores_outliers():
+    rng = np.random.default_rng(0)
+    heights = np.concatenate([rng.uniform(0.0, 0.03, 300), np.full(700, 0.03) + rng.normal(0, 5e-4, 700),
+                              np.full(20, 0.5)])  # walls, top, 2 % flying pixels
+    assert object_height(heights, np.ones(heights.size, bool)) == pytest.approx(0.03, abs=0.002)
+    assert object_height(heights, np.zeros(heights.size, bool)) == 0.0
+    assert object_height(np.full(5, 0.03), np.ones(5, bool)) == 0.0  # too few pixels: unknown
 
 
 def test_given_table_plane_overrides_the_fit():

@@ -169,3 +169,60 @@ def test_automatic_grasp_height():
     assert rcv.grasp_height_for(-1.0, 0.066, 0.02) == pytest.approx(0.033)  # half the object
     assert rcv.grasp_height_for(-1.0, 0.005, 0.02) == pytest.approx(0.01)  # flat object: pads just above the table
     assert rcv.grasp_height_for(-1.0, 0.0, 0.02) == pytest.approx(0.01)  # unknown height
+
+
+def _tilted_box_cloud(tilt: float, height: float, stamp: int):
+    """One noisy frame of a 6 x 4 cm box of ``height`` seen at ``tilt`` (analytic renderer), as a PointCloud2."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
+    from tilted_scene import Box, TiltedScene
+
+    scene = TiltedScene(tilt, distance_m=0.7, width=320, height=240, focal_px=285.0,
+                        boxes=[Box(0.0, 0.0, 0.03, 0.02, height)])
+    rgb, depth, _ = scene.frames(1, seed=int(tilt))
+    xyz = (scene.intrinsics.rays() * depth[0][..., None]).astype(np.float32)
+    return cv.xyz_rgb_to_pointcloud2(rcv.RclpyFactory(), xyz, rgb[0], cv.header(rcv.RclpyFactory(), stamp, 'cam'))
+
+
+def test_measured_object_height_sets_grasp_height_end_to_end():
+    """segmentation_node measures a 5 cm box at 45 degrees (object/top), gpis_node carries it in
+    GpisModel.object_height, planner_node closes the jaws at half of it; the object_height parameter overrides."""
+    from geometry_msgs.msg import PointStamped
+    from rclpy.parameter import Parameter
+
+    from gpis_grasp_interfaces.msg import GpisModel
+    from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
+    from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
+    from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
+    from rosutil import RosHarness, segmentation_graph, wait_for
+
+    ros = RosHarness(threads=4)
+    try:
+        _, _, status, pub = segmentation_graph(ros, [])
+        ros.add(GpisNode(context=ros.context, parameter_overrides=[Parameter('blur_samples', value=50)]))
+        planner = ros.add(PlannerNode(context=ros.context, parameter_overrides=[
+            Parameter('num_shape_samples', value=200), Parameter('num_initial_grasps', value=3)]))
+        client = ros.node('height_client')
+        models, tops = [], []
+        client.create_subscription(GpisModel, 'gpis/model', models.append, LATCHED_QOS)
+        client.create_subscription(PointStamped, 'object/top', tops.append, LATCHED_QOS)
+        plan_cli = client.create_client(GraspPlan, 'plan_grasp')
+        pub.publish(_tilted_box_cloud(45.0, 0.05, 11))
+        assert wait_for(lambda: bool(models) and planner.has_model(), 60.0), status
+        model = models[-1]
+        assert model.object_height == pytest.approx(0.05, abs=0.004)
+        geometry = cv.gpis_model_to_posterior(model).geometry
+        assert geometry.from_sensor(_xyz(tops[-1]))[1] == pytest.approx(model.object_height, abs=1e-9)
+        plan = ros.call(plan_cli, GraspPlan.Request(method='gp-gpis-opt', seed=1), timeout=120.0)
+        assert plan.success, plan.message
+        assert plan.grasp_height == pytest.approx(model.object_height / 2, abs=1e-12)
+        for msg in (plan.jaw1, plan.jaw2, plan.contact1):
+            assert geometry.from_sensor(_xyz(msg))[1] == pytest.approx(plan.grasp_height, abs=1e-9)
+        # a positive object_height parameter overrides the measured height
+        planner.set_parameters([Parameter('object_height', value=0.03)])
+        plan = ros.call(plan_cli, GraspPlan.Request(method='gp-gpis-opt', seed=1), timeout=120.0)
+        assert plan.success and plan.grasp_height == pytest.approx(0.015, abs=1e-12)
+    finally:
+        ros.close()

@@ -32,6 +32,10 @@ def test_head_bag_end_to_end():
         angle = np.degrees(np.arccos(np.clip(plan_geom.table_normal @ truth.table_normal, -1.0, 1.0)))
         assert angle < 1.0
         assert np.degrees(np.arccos(-truth.table_normal[2])) == pytest.approx(52.0, abs=1e-6)
+        # the switch's measured height (2 cm prism, specular lever without depth) sets the automatic grasp height
+        height = loop.models[-1].object_height
+        assert height == pytest.approx(0.020, abs=0.004)
+        assert plan.grasp_height == pytest.approx(max(height / 2, 0.01), abs=1e-12)
         # jaws, centre and contacts at grasp_height above the fitted plane; the jaws at different depths
         for msg in (plan.jaw1, plan.jaw2, plan.grasp_pose, plan.contact1, plan.contact2):
             assert plan_geom.from_sensor(_xyz(msg))[1] == pytest.approx(plan.grasp_height, abs=1e-9)

@@ -6,6 +6,10 @@ same stamp and the same grid, computes the SDF by Euclidean distance transform, 
 and publishes latched ``gpis/model`` (GpisModel), ``gpis/mean`` and ``gpis/variance``
 (FloatGrid, m and m^2), ``gpis/blur`` (mono8 GPIS-Blur image) and OccupancyGrid renderings
 ``gpis/mean_map`` and ``gpis/variance_map`` for RViz.
+
+``GpisModel.object_height`` is the height above the grid's table plane of the latched
+``object/top`` point (geometry_msgs/PointStamped from segmentation_node) with the occupancy's stamp
+and frame; 0 (unknown) when none matches (an older or another publisher of the grids).
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import OccupancyGrid
 from sensor_msgs.msg import Image
 
@@ -35,6 +40,8 @@ from gpis_grasp_ros.ros.nodes.common import (
 
 #: Largest per-cell noise variance accepted on object/noise_map (m^2; a 1 m standard deviation).
 MAX_NOISE_VARIANCE = 1.0
+#: Largest object height (m above the table) taken from object/top; higher is not an object on the table.
+MAX_OBJECT_HEIGHT = 1.0
 
 
 @dataclass(frozen=True)
@@ -105,7 +112,9 @@ class GpisNode(GuardedNode):
         self._occupancy: OccupancyGrid | None = None
         self._noise: FloatGrid | None = None
         self._last_pair = None
+        self._top: PointStamped | None = None
         self._lock = threading.Lock()
+        self.create_subscription(PointStamped, 'object/top', guarded(self, 'object/top', self._on_top), LATCHED_QOS)
         self.create_subscription(OccupancyGrid, 'object/occupancy',
                                  guarded(self, 'object/occupancy', self._on_occupancy), LATCHED_QOS)
         self.create_subscription(FloatGrid, 'object/noise_map', guarded(self, 'object/noise_map', self._on_noise),
@@ -116,7 +125,7 @@ class GpisNode(GuardedNode):
         self.blur_pub = self.create_publisher(Image, 'gpis/blur', LATCHED_QOS)
         self.mean_map_pub = self.create_publisher(OccupancyGrid, 'gpis/mean_map', LATCHED_QOS)
         self.var_map_pub = self.create_publisher(OccupancyGrid, 'gpis/variance_map', LATCHED_QOS)
-        log_startup(self, ['object/occupancy', 'object/noise_map'],
+        log_startup(self, ['object/occupancy', 'object/noise_map', 'object/top'],
                     ['gpis/model', 'gpis/mean', 'gpis/variance', 'gpis/blur', 'gpis/mean_map', 'gpis/variance_map'],
                     ['optimize_hyperparameters', 'prior_mean', 'blur_samples', 'stamp_tolerance', 'max_grid_cells'])
 
@@ -137,6 +146,24 @@ class GpisNode(GuardedNode):
         with self._lock:
             self._occupancy = msg
         self._try_fit()
+
+    def _on_top(self, msg: PointStamped) -> None:
+        if not np.isfinite(messages.point_stamped_to_numpy(msg)).all():
+            self.reject('ignoring object/top: non-finite point')
+            return
+        with self._lock:
+            self._top = msg
+
+    def object_height(self, header, geometry, tolerance_s: float) -> float:
+        """Height (m) above the grid's table plane of the ``object/top`` point matching ``header`` (stamp within
+        ``tolerance_s``, same frame); 0 (unknown) without one."""
+        with self._lock:
+            top = self._top
+        if top is None or top.header.frame_id != header.frame_id or abs(
+                messages.stamp_to_ns(top.header.stamp) - messages.stamp_to_ns(header.stamp)) > tolerance_s * 1e9:
+            return 0.0
+        height = float(geometry.from_sensor(messages.point_stamped_to_numpy(top))[1])
+        return height if np.isfinite(height) and 0.0 < height <= MAX_OBJECT_HEIGHT else 0.0
 
     def _on_noise(self, msg: FloatGrid) -> None:
         try:
@@ -189,7 +216,8 @@ class GpisNode(GuardedNode):
     def _publish(self, posterior: gpis.GpisPosterior, header, config: GpisNodeConfig) -> None:
         factory = conversions.RclpyFactory()
         g = posterior.geometry
-        self.model_pub.publish(messages.posterior_to_gpis_model(posterior, header, factory))
+        height = self.object_height(header, g, config.stamp_tolerance)
+        self.model_pub.publish(messages.posterior_to_gpis_model(posterior, header, factory, object_height=height))
         self.mean_pub.publish(messages.numpy_to_float_grid(factory, posterior.mean, g, header, 'm'))
         self.var_pub.publish(messages.numpy_to_float_grid(factory, posterior.variance, g, header, 'm^2'))
         blur = gpis_blur(posterior, n_samples=config.blur_samples, rng=np.random.default_rng(0),
@@ -204,7 +232,8 @@ class GpisNode(GuardedNode):
         self.var_map_pub.publish(messages.numpy_to_occupancy_grid(factory, var_map, g, header))
         p = posterior.params
         self.get_logger().info(f'published GPIS {g.height}x{g.width}: C={p.signal_variance:.3g} m^2, '
-                               f'l={p.length_scale * 1000:.1f} mm, prior mean={p.prior_mean * 1000:.1f} mm')
+                               f'l={p.length_scale * 1000:.1f} mm, prior mean={p.prior_mean * 1000:.1f} mm, '
+                               f'object height {height * 1000:.1f} mm' + ('' if height > 0 else ' (unknown)'))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -111,6 +111,12 @@ def build_config(v: dict[str, Any]) -> PlannerConfig:
                          object_height=float(v['object_height']), jaw_height=float(v['jaw_height']))
 
 
+def _object_height(config: PlannerConfig, model: Any) -> float:
+    """Object height (m) for the automatic grasp height: the ``object_height`` parameter when > 0, else the
+    height segmentation measured (``GpisModel.object_height``, 0 = unknown)."""
+    return config.object_height if config.object_height > 0 else messages.gpis_model_object_height(model)
+
+
 @dataclass(eq=False)
 class PlanJob:
     """One admitted request (service call or action goal) and its outcome."""
@@ -164,8 +170,9 @@ class PlannerNode(GuardedNode):
         declare(self, 'grasp_height', -1.0, 'height (m) above the table, along its normal, of the jaw poses and '
                 'contacts; negative = automatic: half of object_height, at least half of jaw_height',
                 low=-1.0, high=0.5)
-        declare(self, 'object_height', 0.0, 'height (m) of the object above the table for the automatic grasp_height '
-                '(0 = unknown: the jaws close half a jaw height above the table)', low=0.0, high=1.0)
+        declare(self, 'object_height', 0.0, 'height (m) of the object above the table for the automatic grasp_height; '
+                '0 = the height measured by segmentation (GpisModel.object_height; if that is 0 too, unknown: the '
+                'jaws close half a jaw height above the table); > 0 overrides it', low=0.0, high=1.0)
         declare(self, 'jaw_height', conversions.DEFAULT_JAW_HEIGHT, 'height (m) of a jaw pad along the approach '
                 'direction (grasp_height clamp, markers)', low=0.001, high=0.2)
         declare(self, 'max_queue', 32, 'requests (service calls + action goals) that may wait for a worker; '
@@ -371,7 +378,7 @@ class PlannerNode(GuardedNode):
             c = job.config
             conversions.fill_grasp_plan_response(
                 response, result, job.model.header, geometry=job.posterior.geometry,
-                grasp_height=conversions.grasp_height_for(c.grasp_height, c.object_height, c.jaw_height),
+                grasp_height=conversions.grasp_height_for(c.grasp_height, _object_height(c, job.model), c.jaw_height),
                 contacts_xy=conversions.mean_shape_contacts(job.posterior, result, c.gripper.jaw_width))
             finite = np.isfinite(np.concatenate([np.ravel(result.jaw1), np.ravel(result.jaw2)])).all()
             if response.success and not finite:
@@ -476,7 +483,7 @@ class PlannerNode(GuardedNode):
         c = job.config
         self.marker_pub.publish(conversions.grasp_markers(
             result, header, posterior.geometry, jaw_width, jaw_height=c.jaw_height, contacts_xy=touches,
-            grasp_height=conversions.grasp_height_for(c.grasp_height, c.object_height, c.jaw_height)))
+            grasp_height=conversions.grasp_height_for(c.grasp_height, _object_height(c, job.model), c.jaw_height)))
         overlay = viz.grasp_overlay(job.blur, posterior.geometry, [result], scale=job.config.image_scale,
                                     jaw_width_m=jaw_width)
         factory = conversions.RclpyFactory()

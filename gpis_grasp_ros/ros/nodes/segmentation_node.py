@@ -15,7 +15,10 @@ table-plane fit (or ``table_plane``), region of interest (``roi_px`` / ``roi_tab
 (no plane, plane edge-on, empty table, target point on no object, target cut by the image border
 or too wide for ``max_opening``) nothing is published; the reason is logged and published on the
 latched ``segmentation/status`` (std_msgs/String, ``'failed: <reason>'``; ``'ok: <summary>'``
-after each publication).
+after each publication). With the grids it publishes latched ``object/top``
+(geometry_msgs/PointStamped, same stamp and frame): the centre of the grid lifted to the target's
+measured height above the table along the normal (camera frame, m; on the plane = height unknown);
+gpis_node puts that height into ``GpisModel.object_height`` for the planner's ``grasp_height``.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -200,12 +204,14 @@ class SegmentationNode(GuardedNode):
                                      guarded(self, 'camera/rgb/camera_info', self._on_info), qos)
         self.occupancy_pub = self.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
         self.noise_pub = self.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
+        #: the target's top: grid centre at the measured object height (published before the grids)
+        self.top_pub = self.create_publisher(PointStamped, 'object/top', LATCHED_QOS)
         #: latched outcome of the last segmentation: 'ok: ...' or 'failed: <reason>' (nothing published then)
         self.status_pub = self.create_publisher(String, 'segmentation/status', LATCHED_QOS)
         self.create_timer(0.05, self._on_burst_timer)
         inputs = (['camera/depth/points'] if self.input_mode == 'cloud' else
                   ['camera/rgb/image_raw', 'camera/depth/image_raw', 'camera/rgb/camera_info'])
-        log_startup(self, inputs, ['object/occupancy', 'object/noise_map', 'segmentation/status'],
+        log_startup(self, inputs, ['object/occupancy', 'object/noise_map', 'object/top', 'segmentation/status'],
                     ['input_mode', 'input_reliability', 'frames_to_average', 'min_frames', 'burst_timeout',
                      'grid_size', 'target', 'sensor_model'])
 
@@ -360,12 +366,16 @@ class SegmentationNode(GuardedNode):
         factory = conversions.RclpyFactory()
         header_msg = messages.header(factory, messages.stamp_to_ns(stamp), frame_id)
         occ, noise, geometry = pipeline.publishable_grids(result)
+        centre = np.array([geometry.origin_x, geometry.origin_y]) + 0.5 * np.array(geometry.size_m)
+        self.top_pub.publish(messages.point_stamped(factory, geometry.to_sensor(centre, result.object_height),
+                                                    header_msg))
         self.occupancy_pub.publish(messages.numpy_to_occupancy_grid(factory, occ, geometry, header_msg))
         self.noise_pub.publish(messages.numpy_to_float_grid(factory, noise, geometry, header_msg, 'm^2'))
         summary = (f'published {result.geometry.height}x{result.geometry.width} occupancy and noise map from '
                    f'{len(frames)} frames (worth {result.effective_frames:.1f} independent): '
                    f'{result.objects_seen} object(s) on the table, target {result.geometry.size_m[0] * 1000:.0f} mm '
-                   f'grid, table tilt {result.table.tilt_deg:.1f} deg, {int(result.missing.sum())} missing cells '
+                   f'grid, table tilt {result.table.tilt_deg:.1f} deg, object height '
+                   f'{result.object_height * 1000:.1f} mm, {int(result.missing.sum())} missing cells '
                    f'({why})')
         self.get_logger().info(summary)
         self.status_pub.publish(String(data=f'ok: {summary}'))
