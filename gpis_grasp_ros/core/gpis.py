@@ -1103,10 +1103,15 @@ def posterior_from_data(geometry: GridGeometry, kernel_params: KernelParams, tra
 
 
 def build_gpis(sensing_result: SensingResult, params: GpisParams = GpisParams()) -> GpisPosterior:
-    """Section III-B end to end: SDF of the occupancy (missing = object), GPR on non-missing cells."""
+    """Section III-B end to end: SDF of the occupancy with every unknown cell as object, GPR on the others.
+
+    Unknown = outside ``train_mask`` (missing, or uncertain: the sensing module's Noise map), exactly as
+    :func:`~gpis_grasp_ros.core.pipeline.publishable_grids` publishes them (-1) for gpis_node.
+    """
     geometry = sensing_result.geometry
-    sdf = signed_distance(sensing_result.occupancy, geometry.resolution)
     train_mask = getattr(sensing_result, 'train_mask', None)
     if train_mask is None:
         train_mask = ~np.asarray(sensing_result.missing, dtype=bool)
+    train_mask = np.asarray(train_mask, dtype=bool)
+    sdf = signed_distance((np.asarray(sensing_result.occupancy) >= 0.5) | ~train_mask, geometry.resolution)
     return fit_gpis(sdf, sensing_result.noise_variance, train_mask, geometry, params)

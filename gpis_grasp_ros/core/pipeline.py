@@ -26,9 +26,13 @@ def message_geometry(geometry: GridGeometry) -> GridGeometry:
 
 
 def publishable_grids(result: SensingResult) -> tuple[np.ndarray, np.ndarray, GridGeometry]:
-    """Sensing result → (occupancy int8 0..100 with -1 = missing, noise float32 m^2 with NaN = not trained)."""
+    """Sensing result → (occupancy int8 0..100 with -1 = unknown, noise float32 m^2 with NaN = not trained).
+
+    Unknown = every cell outside ``train_mask`` (missing, or uncertain: see the sensing module's Noise
+    map): -1 (``nav_msgs/OccupancyGrid``'s "unknown"), counted as object in the SDF, not trained.
+    """
     occ = np.clip(np.round(result.occupancy * 100.0), 0, 100).astype(np.int8)
-    occ[result.missing] = -1
+    occ[~result.train_mask] = -1
     noise = np.where(result.train_mask, result.noise_variance, np.nan).astype(np.float32)
     return occ, noise, message_geometry(result.geometry)
 

@@ -197,6 +197,7 @@ class SensingParams:
     error_correlation_length_m: float = 0.01  # extent over which propagated SDF errors are shared (m)
     propagation_radius_m: float = 0.03  # propagated SDF variance reaches this far from its cause (m)
     discretisation_weight: float = 0.0  # weight of resolution^2 / 12 in the SDF noise (0 = off)
+    exclude_uncertain: bool = True  # uncertain cells: not trained, object in the SDF (False: trained, old model)
 
     def __post_init__(self) -> None:
         if self.grid_size < 3:
@@ -663,6 +664,40 @@ def _accumulate(cell: np.ndarray, maps: list[np.ndarray], n_cells: int) -> list[
     return [np.bincount(cell[ok], weights=m[ok], minlength=n_cells) for m in maps]
 
 
+def _foreign_missing_fraction(row: np.ndarray, col: np.ndarray, in_grid: np.ndarray, informative: np.ndarray,
+                              foreign: np.ndarray, m: int) -> np.ndarray:
+    """Per cell: share of its pixels that are no-return pixels not given to the target (``foreign``).
+
+    Such pixels (a specular wing the segmentation split from the seen body, D of the shipped bags) are
+    otherwise dropped, and the cell is then filled from its neighbours as observed table - the GPIS
+    would be confidently wrong exactly where nothing was measured. Unweighted pixel counts of the
+    cell's informative pixels plus the foreign ones; 0 where no pixel falls in the cell.
+    """
+    idx = np.where(in_grid, np.nan_to_num(row) * m + np.nan_to_num(col), -1).astype(np.int64)
+    n_foreign = np.bincount(idx[in_grid & foreign], minlength=m * m)
+    n_seen = np.bincount(idx[informative], minlength=m * m)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        frac = np.where(n_foreign > 0, n_foreign / np.maximum(n_foreign + n_seen, 1), 0.0)
+    return frac.reshape(m, m)
+
+
+def _extended_regions(mask: np.ndarray) -> np.ndarray:
+    """The 8-connected components of ``mask`` that hold a cell whose four neighbours are all in ``mask``.
+
+    Drops thin bands (one or two cells wide): where the colour mask bleeds a pixel or two past a seen
+    object's edge the masks disagree along a ring, which is edge noise, not an unseen part.
+    """
+    if not mask.any():
+        return np.zeros_like(mask)
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    core = cv2.erode(mask.astype(np.uint8), cross, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    keep = np.zeros(count, dtype=bool)
+    keep[np.unique(labels[core])] = True
+    keep[0] = False
+    return keep[labels]
+
+
 def _propagation_variance(occ_bin: np.ndarray, uncertain: np.ndarray, train: np.ndarray, geometry: GridGeometry,
                           params: SensingParams) -> np.ndarray:
     """SDF variance (m^2) induced by uncertain cells on every cell's distance (module docstring)."""
@@ -879,8 +914,17 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         depth_var = np.where(s_valid > 0, s_var / s_valid, 0.0)
     disagreement = np.where(observed & (s_valid > 0), np.clip(np.nan_to_num(rho_c), 0.0, 1.0), 0.0)
 
-    # SDF noise: depth + discretisation + disagreement + propagation (module docstring)
-    uncertain = missing | (disagreement > params.uncertainty_threshold)
+    # SDF noise: depth + discretisation + disagreement + propagation (module docstring, Noise map). Unknown
+    # cells - missing, extended regions where the masks disagree, or mostly no-return pixels the target did
+    # not get - are not trained and count as object in the SDF, so the prior governs them (section III-B)
+    disagree = disagreement > params.uncertainty_threshold
+    uncertain = missing | disagree
+    unknown = missing.copy()
+    if params.exclude_uncertain:
+        foreign = _foreign_missing_fraction(row, col, in_grid, informative, missing_px & ~target_px,
+                                            m) > params.missing_cell_fraction
+        uncertain |= foreign
+        unknown |= foreign | _extended_regions(disagree)
     noise = (depth_var + params.discretisation_weight * res ** 2 / 12.0
              + params.disagreement_variance_m2 * disagreement
              + params.disagreement_variance_m2 * np.where(missing, 0.0, miss_c))
@@ -889,8 +933,9 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         raise ValueError('no object found: the target evidence is too weak for any grid cell to be occupied '
                          '(lower grid_size or the thresholds)')
     noise = np.where(observed, noise, params.unobserved_variance_m2)
-    noise = noise + _propagation_variance(occ_bin, uncertain, ~missing, geometry, params)
-    train_mask = ~missing
+    train_mask = ~unknown
+    sdf_object = occ_bin | ~train_mask  # what the GPIS's SDF treats as object (pipeline.publishable_grids)
+    noise = noise + _propagation_variance(sdf_object, uncertain, train_mask, geometry, params)
     noise = np.where(train_mask, noise, np.maximum(noise, params.disagreement_variance_m2))  # unused by the GP
     noise_px = np.where(missing_px, np.nan, var_z + params.disagreement_variance_m2 * rho)
     vs, us = np.nonzero(target_px)

@@ -543,3 +543,90 @@ def test_invalid_inputs_raise():
                                KernelParams(1e-3, 0.01, -0.01))
     with pytest.raises(ValueError, match='training data'):
         hand_built.predict_mean(np.zeros((1, 2)))
+
+
+# ----------------------------------------------------------------------------------------------
+# noise map -> GPIS: unobserved parts are uncertain, not confidently absent (issue 11, calibration)
+
+def _rendered_scene(seed: int, trans_width: float = 0.02, n_frames: int = 6, size: int = 200):
+    """Top-down Carmine-like frames: an opaque box (depth + colour) with a transparent part (colour only).
+
+    Box 5 x 4 cm, 3 cm tall, at x in [-0.04, 0.01]; transparent part ``trans_width`` x 4 cm to its right:
+    the sensor sees the table through it (depth = table) and a faint tint in colour (Object A's
+    dispenser). Returns frames, intrinsics and the true SDF (m) as a function of camera (x, y).
+    """
+    from gpis_grasp_ros.core.noise_model import axial_sigma, quantise
+    from gpis_grasp_ros.core.sensing import CameraIntrinsics
+
+    table_z, table_rgb = 0.7, np.array([120.0, 120.0, 120.0])
+    rng = np.random.default_rng(seed)
+    intr = CameraIntrinsics(570.0, 570.0, (size - 1) / 2, (size - 1) / 2, size, size)
+    u, v = np.meshgrid(np.arange(size), np.arange(size))
+    x, y = (u - intr.cx) * table_z / intr.fx, (v - intr.cy) * table_z / intr.fy
+    box = (x >= -0.04) & (x < 0.01) & (np.abs(y) < 0.02)
+    trans = (x >= 0.01) & (x < 0.01 + trans_width) & (np.abs(y) < 0.02)
+    colour = np.broadcast_to(table_rgb, (size, size, 3)).copy()
+    colour[box] = (200, 60, 50)
+    colour[trans] = table_rgb + (0, 30, 40)
+    z_true = np.where(box, table_z - 0.03, table_z)
+    depth = np.array([quantise(z_true + rng.standard_normal(z_true.shape) * axial_sigma(z_true))
+                      for _ in range(n_frames)])
+    rgb = np.array([np.clip(colour + rng.normal(0.0, 3.0, colour.shape), 0, 255).astype(np.uint8)
+                    for _ in range(n_frames)])
+
+    def true_sdf(px: np.ndarray, py: np.ndarray) -> np.ndarray:  # union of two axis-aligned boxes
+        def rect(x0, x1, y0, y1):
+            dx = np.maximum(x0 - px, px - x1)
+            dy = np.maximum(y0 - py, py - y1)
+            return np.hypot(np.maximum(dx, 0), np.maximum(dy, 0)) + np.minimum(np.maximum(dx, dy), 0)
+        return np.minimum(rect(-0.04, 0.01, -0.02, 0.02), rect(0.01, 0.01 + trans_width, -0.02, 0.02))
+
+    return rgb, depth, intr, true_sdf, (0.01, 0.01 + trans_width)
+
+
+def _posterior_and_truth(seed: int, exclude_uncertain: bool = True, **kw):
+    from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
+    from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
+
+    rgb, depth, intr, true_sdf, trans_x = _rendered_scene(seed, **kw)
+    result = segment_frames(rgb, depth, intr, SensingParams(exclude_uncertain=exclude_uncertain))
+    post = posterior_from_grids(*publishable_grids(result))
+    p = result.geometry.to_sensor(result.geometry.cell_centers(), 0.0)  # cell centres in the camera frame
+    return post, result, true_sdf(p[..., 0], p[..., 1]), p, trans_x
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_transparent_part_is_uncertain_and_covered(seed):
+    """The paper's Fig. 4 case (Object A): a part seen in colour only must not be confidently free.
+
+    Its cells are unknown (not trained, object in the SDF, section III-B), so the posterior at the
+    part's true surface is uncertain (sigma >= 0.2 x the prior sigma there) and its 95 % interval
+    covers the true SDF at >= 90 % of the near-surface cells of the part; the part stays in the mean
+    shape. The old noise map (the part's cells trained as observed table, ``exclude_uncertain=False``)
+    covers the truth at only ~1/4 of those cells.
+    """
+    post, result, truth, p, (x0, x1) = _posterior_and_truth(seed)
+    res = post.geometry.resolution
+    part = (p[..., 0] > x0 + res) & (np.abs(truth) < 2 * res)  # near the part's surface, off the box
+    assert part.sum() >= 15
+    assert result.uncertain[(p[..., 0] > x0 + res) & (p[..., 0] < x1 - res) & (np.abs(p[..., 1]) < 0.015)].all()
+    sd = np.sqrt(post.variance)
+    z = (truth - post.mean) / sd
+    assert np.mean(np.abs(z[part]) < 1.96) >= 0.9
+    assert np.median(sd[part]) >= 0.2 * math.sqrt(post.params.signal_variance)
+    inside = (p[..., 0] > x0 + res) & (p[..., 0] < x1 - res) & (np.abs(p[..., 1]) < 0.015)
+    assert np.mean(post.mean[inside] < 0) > 0.8  # the part does not vanish from the mean shape
+
+    if seed == 0:
+        old, _, _, _, _ = _posterior_and_truth(seed, exclude_uncertain=False)
+        z_old = (truth - old.mean) / np.sqrt(old.variance)
+        assert np.mean(np.abs(z_old[part]) < 1.96) < 0.5
+
+
+def test_opaque_box_keeps_its_calibrated_mean_shape():
+    """Without a transparent part nothing is unknown (a one-cell ring of disagreeing masks is edge noise,
+    ``_extended_regions``): every cell is trained and the mean shape matches the box."""
+    post, result, truth, p, _ = _posterior_and_truth(3, trans_width=0.0)
+    assert result.train_mask.all()
+    inside_true, inside_mean = truth < 0, post.mean < 0
+    assert np.count_nonzero(inside_true & inside_mean) / np.count_nonzero(inside_true | inside_mean) > 0.85
