@@ -425,18 +425,78 @@ class _Raster:
         return idx[..., 0], idx[..., 1], ok
 
 
-def _missing_height(height: np.ndarray, above: np.ndarray, footprint_m: float,
-                    window_m: float = MISSING_HEIGHT_WINDOW_M) -> np.ndarray:
-    """Height (m) assumed for pixels without depth: the mean height of the pixels seen above the table
-    within ``window_m`` (on the table) around them, 0 (on the table) if there are fewer than 3.
+def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, rays: np.ndarray, table: TableFrame,
+                    intrinsics: CameraIntrinsics, footprint_m: float, window_m: float = MISSING_HEIGHT_WINDOW_M,
+                    reach_m: float = MISSING_BRIDGE_M, samples: int = 24) -> np.ndarray:
+    """Height (m) above the table at which each pixel without a depth return is placed on its ray (0 = where
+    the ray meets the table, also for every pixel with depth).
 
-    A hole on the top of a tall object (specular or transparent) is thereby projected next to that
-    object's visible parts, not onto the table far behind it where its ray would meet the plane."""
+    What a no-return pixel sees (a specular part, or the table in a projector shadow) lies on its ray
+    between the table and the top of the object next to it; seen by a camera tilted by theta, that ray
+    segment projects orthographically onto a segment of length H tan(theta) on the table, its foot moving
+    *away* from the camera as the height drops. Placing every hole where its ray meets the table would put
+    the holes on an object's top up to H tan(theta) behind the object. So:
+
+    1. **Local top H.** A hole region (8-connected in the image) touching pixels seen above the table
+       (``above``) belongs next to that object: each of its pixels within ``reach_m`` (on the table) of
+       the nearest seen-above pixel takes that pixel's *local top*, the highest height seen within
+       ``window_m`` around it. Other holes (drop-outs on the bare table, holes away from any seen
+       object) stay on the table.
+    2. **Where the ray enters the object's prism.** The object is taken as a prism of height H whose
+       image is the object's pixels (seen above the table, or holes): a table point x is under it when
+       x and the point H above x both project onto object pixels (single-view visual hull). The pixel
+       is placed at the highest point of its ray segment (H down to the table, ``samples`` heights)
+       whose foot is under the prism - the first surface of the prism the ray meets: the top face for
+       a hole in the top, the wall for a specular wall facing the camera (not in front of the object),
+       and on the table (height 0) when the ray meets no such prism (a projector shadow or drop-out
+       beside the object).
+
+    Heights are along the table normal (m); ``footprint_m`` is a pixel's extent on the table (m)."""
+    out = np.zeros(height.shape)
+    if not missing.any() or not above.any():
+        return out
     k = max(3, 2 * int(round(0.5 * window_m / max(footprint_m, 1e-6))) + 1)
-    h = np.where(above, np.nan_to_num(height), 0.0).astype(np.float32)
-    total = cv2.boxFilter(h, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    count = cv2.boxFilter(above.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    return np.where(count >= 3, total / np.maximum(count, 1.0), 0.0).astype(np.float64)
+    h_above = np.where(above, np.nan_to_num(height), 0.0).astype(np.float32)
+    top = cv2.dilate(h_above, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    dist_px, nearest = cv2.distanceTransformWithLabels((~above).astype(np.uint8), cv2.DIST_L2, 5,
+                                                       labelType=cv2.DIST_LABEL_PIXEL)
+    seen = np.argwhere(above)  # in the (row-major) order of OpenCV's pixel labels
+    n_reg, region = cv2.connectedComponents(missing.astype(np.uint8), connectivity=8)
+    touching = np.zeros(n_reg, dtype=bool)
+    touching[np.unique(region[missing & (dist_px <= 1.5)])] = True
+    touching[0] = False
+    vs, us = np.nonzero(missing & touching[region] & (dist_px * footprint_m <= reach_m))
+    if vs.size == 0:
+        return out
+    near = seen[np.clip(nearest[vs, us] - 1, 0, len(seen) - 1)]
+    top_h = top[near[:, 0], near[:, 1]].astype(np.float64)
+    ray = rays[vs, us]
+    ray_n = ray @ table.n
+    ok = (ray_n < -1e-9) & (top_h > 0)
+    vs, us, top_h, ray, ray_n = vs[ok], us[ok], top_h[ok], ray[ok], ray_n[ok]
+    if vs.size == 0:
+        return out
+    # the object's pixels, one pixel of slack for the rounding of the projections
+    obj = cv2.dilate((above | missing).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    h_img, w_img = obj.shape
+
+    def on_object(points: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid='ignore', divide='ignore'):
+            uv = np.round(intrinsics.project(points))
+        inside = (points[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w_img) & (uv[..., 1] >= 0) \
+            & (uv[..., 1] < h_img)
+        u = np.clip(np.nan_to_num(uv[..., 0]), 0, w_img - 1).astype(np.int64)
+        v = np.clip(np.nan_to_num(uv[..., 1]), 0, h_img - 1).astype(np.int64)
+        return inside & obj[v, u]
+
+    heights = top_h[:, None] * np.linspace(1.0, 0.0, samples)[None, :]  # (n, K), from the top down
+    t = (heights - table.offset_m) / ray_n[:, None]
+    on_ray = ray[:, None, :] * t[..., None]  # camera-frame points of the ray at those heights
+    foot = on_ray - heights[..., None] * table.n
+    under = on_object(foot) & on_object(foot + top_h[:, None, None] * table.n)
+    first = np.argmax(under, axis=1)
+    out[vs, us] = np.where(under.any(axis=1), heights[np.arange(vs.size), first], 0.0)
+    return out
 
 
 def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJECT_HEIGHT_PERCENTILE,
@@ -658,6 +718,36 @@ def _table_area_weights(foot_xy: np.ndarray, ray_xy: np.ndarray, valid: np.ndarr
     return np.clip(cv2.blur(ratio, (5, 5), borderType=cv2.BORDER_REPLICATE), 0.0, 4.0).astype(np.float64)
 
 
+def _hidden_cells(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_xy: np.ndarray, height: np.ndarray,
+                  above: np.ndarray, tol_m: float) -> np.ndarray:
+    """(M, M) bool: grid cells whose table patch a tilted camera cannot see (behind an object).
+
+    The pixel looking at the cell centre sees a surface above the table (``above``) at height h; if
+    something stands on the cell, the pixel looking at the point h above the cell centre sees it there
+    (its orthographic foot within ``tol_m`` of the centre). If not, the surface seen belongs to an object
+    in front of the cell and the cell is hidden: the feet of the neighbouring pixels (the object's far
+    edge and the table beyond the occluded strip) must not be interpolated into it."""
+    h_img, w_img = height.shape
+    centres = geometry.cell_centers()
+
+    def pixel(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with np.errstate(invalid='ignore', divide='ignore'):
+            uv = intrinsics.project(points)
+        u, v = np.round(uv[..., 0]), np.round(uv[..., 1])
+        inside = (points[..., 2] > 0) & np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w_img) & (v >= 0) \
+            & (v < h_img)
+        return (np.clip(np.nan_to_num(u), 0, w_img - 1).astype(np.int64),
+                np.clip(np.nan_to_num(v), 0, h_img - 1).astype(np.int64), inside)
+
+    u0, v0, in0 = pixel(geometry.to_sensor(centres, 0.0))
+    covered = in0 & above[v0, u0]
+    h_seen = np.where(covered, np.nan_to_num(height[v0, u0]), 0.0)
+    u1, v1, in1 = pixel(geometry.to_sensor(centres, h_seen))
+    dist = np.linalg.norm(foot_xy[v1, u1] - centres, axis=-1)
+    under = in1 & np.isfinite(dist) & (dist <= tol_m)
+    return covered & ~under
+
+
 def _accumulate(cell: np.ndarray, maps: list[np.ndarray], n_cells: int) -> list[np.ndarray]:
     """Per-cell sums of pixel maps (``cell`` = flat cell index, -1 = not in the grid)."""
     ok = cell >= 0
@@ -819,7 +909,8 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     # 5. orthographic feet on the table; evidence above the plane, on the table, in the ROI; the target
     footprint = float(np.median(z_mean[inlier])) / min(intrinsics.fx, intrinsics.fy) / max(
         math.cos(math.radians(table.tilt_deg)), 0.3)
-    h_missing = _missing_height(height, valid & (np.nan_to_num(height) > h_thr), footprint)
+    h_missing = _missing_height(height, valid & (np.nan_to_num(height) > h_thr), missing_px, rays, table,
+                                intrinsics, footprint)
     hit_points, hit = table.ray_intersection(rays)
     ray_dot = rays @ normal
     with np.errstate(invalid='ignore', divide='ignore'):
@@ -874,10 +965,12 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     # table): the mean of their observed 8-neighbours, if at least 3, for as many cells as a footprint spans
     stats = [s_occ, s_pd, s_pc, s_valid, s_miss, s_var]
     kernel3 = np.ones((3, 3), np.float32)
+    hidden = _hidden_cells(geometry, intrinsics, foot_xy, height, valid & (np.nan_to_num(height) > h_thr),
+                           max(1.5 * res, 2.0 * footprint))  # behind an object: not interpolated
     for _ in range(int(math.ceil(footprint / res))):
         seen = (n_inf > 0).astype(np.float32)
         n_nb = cv2.filter2D(seen, -1, kernel3, borderType=cv2.BORDER_CONSTANT)
-        fill = (n_inf == 0) & (n_nb >= 3)
+        fill = (n_inf == 0) & (n_nb >= 3) & ~hidden
         if not fill.any():
             break
         for arr in stats:
