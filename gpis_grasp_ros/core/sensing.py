@@ -85,8 +85,39 @@ cell's SDF value, the sum of these documented terms:
   missing region raised far cells to (90 mm)^2).
 * discretisation (off by default, ``discretisation_weight``): resolution^2 / 12.
 
-Missing cells (excluded from training) carry at least ``disagreement_variance_m2`` so that the
-published map never shows them as reliable; the GP does not use these values.
+Unknown cells (``exclude_uncertain``, default on; issue 11's calibration study). The paper
+builds the GPIS so that it is most uncertain where the measurements are missing or the RGB and depth
+masks disagree (section III-B, Object A); it does not say how. An independent per-cell noise, however
+large, does not achieve it: the GP pools ~pi (l / res)^2 neighbouring cells, so a transparent part
+trained as observed table (depth sees the table through it) stayed confidently free - on the
+shipped bags the true SDF lay 5-80 posterior sigmas from the mean there (Object A's dispenser arm,
+D's specular wings, F's crystal body, G's bottle). So these cells are **not training points at all**
+and count as **object in the SDF** of the other cells, exactly as the paper treats missing
+measurements ("considered part of the object in the occupancy map but not used for the GPIS
+construction"): the negative prior mean and the prior variance govern them. Unknown =
+
+* missing cells (as before);
+* extended regions where the masks disagree (rho > ``uncertainty_threshold``): 8-connected
+  components of such cells holding a cell whose four neighbours disagree too
+  (:func:`_extended_regions`). A band one or two cells wide is edge noise (the colour mask
+  bleeding a pixel past a seen edge) and stays trained with its disagreement variance;
+* cells made mostly (> ``missing_cell_fraction``) of no-return pixels the segmentation did not
+  give the target (:func:`_foreign_missing_fraction`): a specular part split from the seen body
+  would otherwise be dropped and its cells filled from their neighbours as observed table.
+  Following the paper's assumption (missing measurements come from the object, the table is
+  measured well) they are unknown, not free.
+
+``train_mask`` = not unknown; ``uncertain`` flags missing, disagreeing and such no-return cells.
+Gradient observations need both neighbours trained, so none is taken across an unknown cell. The
+propagation term above uses the SDF with unknown cells as object (what the GP is trained on).
+``exclude_uncertain=False`` restores the previous model (only missing cells untrained, disagreeing
+cells trained and free in the SDF) for comparison. Seen edges get **no** extra noise: an independent
+(1-2 cell)^2 at every edge cell raised the posterior sigma there by only ~25 % (the edge error of
+a binarised EDT is correlated along the edge and the GP pools it away) while ML lengthened l and the
+mean-shape IoU fell (H 0.80 -> 0.65 / 0.38, D 0.64 -> 0.41) - see README, Calibration.
+
+Untrained cells carry at least ``disagreement_variance_m2`` so that the published map never shows
+them as reliable; the GP does not use these values.
 
 Grid (x, y) are table-frame metres (:class:`~gpis_grasp_ros.core.grid.GridGeometry`; for a
 top-down camera the camera's x, y at the table depth).
