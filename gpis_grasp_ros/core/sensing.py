@@ -131,6 +131,9 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.ndimage import watershed_ift
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.special import ndtr
 
 from gpis_grasp_ros.core.grid import GridGeometry
@@ -143,6 +146,10 @@ MISSING_HEIGHT_WINDOW_M = 0.02
 MISSING_BRIDGE_M = 0.05  # a hole region this small joins the objects it touches (m)
 MISSING_ATTACH_M = 0.01  # holes belong to an object within this distance of its seen parts (m)
 OBJECT_HEIGHT_PERCENTILE = 95.0  # measured object height: this percentile of its depth-seen heights
+FLAT_STEP_M = 0.004  # neighbouring cells of a flat surface differ by at most this height (m)
+FLAT_JUMP_M = 0.01  # ... and something standing on/next to it differs from it by more (m)
+FLAT_MIN_AREA_M2 = 0.002  # a flat support (notebook, plate, tray) covers at least this area (m^2)
+SPLIT_NECK_M = 0.01  # touching objects split where both are wider than their contact by 2 x this (radius, m)
 
 
 @dataclass(frozen=True)
@@ -214,6 +221,10 @@ class SensingParams:
     color_threshold_min: float = 20.0  # adaptive threshold: max(this, median + color_mad_factor x MAD)
     color_mad_factor: float = 5.0
     color_sigma: float = 0.0  # width of the soft colour ramp; <= 0 = adaptive, max(2, MAD of the inliers)
+    color_smooth_px: float = 0.0  # Gaussian sigma (px) of the colour image before the colour test (texture, JPEG)
+    color_hole_margin_px: int = 0  # table pixels this close to a depth hole do not train the table colour
+    transparent_close_m: float = 0.006  # closing radius (m) of the target's outline before its interior is filled
+    transparent_core_occupied: bool = False  # colour-only pixels in the target's core count as seen-through object
     depth_floor_variance: float = 0.02  # trust of the depth mask in the inverse-variance weights
     color_floor_variance: float = 0.05  # trust of the RGB mask (higher = trusted less)
     morph_kernel_px: int = 3  # opening/closing kernel (ellipse) of the mask clean-up, 0 = off
@@ -403,12 +414,29 @@ def shadow_line_distance(rgb: np.ndarray, table_rgb: np.ndarray) -> tuple[np.nda
     return np.linalg.norm(rgb - alpha[..., None] * t, axis=-1), ratio
 
 
-def _colour_model(rgb_mean: np.ndarray, inlier: np.ndarray,
-                  params: SensingParams) -> tuple[np.ndarray, float, float, float]:
-    """Table colour (median of the plane inliers), the adaptive threshold/ramp of the colour test and the
-    brightness ratio below which a colour on the shadow line is "darker than the table" (shadow or a
-    dark object of the table's hue: colour cannot tell, depth decides)."""
-    samples = rgb_mean[inlier]
+@dataclass(frozen=True)
+class ColourModel:
+    """Table colour model learnt from the plane's inliers (robust statistics: median and 1.4826 MAD)."""
+
+    table_rgb: np.ndarray  # (3,) median colour t of the training pixels (0-255)
+    threshold: float  # shadow-line distance above which a colour is not the table's
+    sigma: float  # width of the soft ramp of the test
+    dark_ratio: float  # brightness ratio below which a colour on the shadow line is "darker than the table"
+
+    def evidence(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """p_c (probability of "not the table") and the brightness ratio of colours ``rgb``."""
+        dist, ratio = shadow_line_distance(rgb, self.table_rgb)
+        return ndtr((dist - self.threshold) / self.sigma), ratio
+
+
+def _colour_model(rgb: np.ndarray, train: np.ndarray, params: SensingParams) -> ColourModel:
+    """Table colour model from the training pixels ``train`` of the colour image.
+
+    t = median colour; threshold = max(``color_threshold_min``, median + ``color_mad_factor`` MAD) of
+    the training pixels' shadow-line distances, ramp max(2, MAD); colours darker than the table's
+    own texture (ratio below median - max(0.1, ``color_mad_factor`` MAD)) are "darker than the table".
+    Robust statistics, because the plane's inliers include the table seen *through* clear objects."""
+    samples = rgb[train]
     if samples.shape[0] > 50000:
         samples = samples[np.random.default_rng(0).choice(samples.shape[0], 50000, replace=False)]
     if params.table_color is not None:
@@ -422,7 +450,31 @@ def _colour_model(rgb_mean: np.ndarray, inlier: np.ndarray,
     c_sigma = float(params.color_sigma) if params.color_sigma > 0 else max(2.0, mad)
     ratio_mad = 1.4826 * float(np.median(np.abs(ratio - np.median(ratio))))
     dark_ratio = float(np.median(ratio)) - max(0.1, params.color_mad_factor * ratio_mad)
-    return table_rgb, c_thr, c_sigma, dark_ratio
+    return ColourModel(table_rgb, c_thr, c_sigma, dark_ratio)
+
+
+def _colour_evidence(rgb_mean: np.ndarray, inlier: np.ndarray, missing: np.ndarray,
+                     params: SensingParams) -> tuple[ColourModel, np.ndarray, np.ndarray]:
+    """Smoothed colour image -> table colour model and per-pixel colour evidence p_c and brightness ratio.
+
+    The image is smoothed (Gaussian, ``color_smooth_px``: demosaicing/JPEG noise and the fine texture of
+    a cloth or wood grain); the model is trained on the plane's inliers except those within
+    ``color_hole_margin_px`` of a depth hole (a clear object's rim: the D435 sees the table through
+    it, so its inliers near the holes carry the object's colour), unless that leaves too few."""
+    img = rgb_mean.astype(np.float32)
+    if params.color_smooth_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), params.color_smooth_px, borderType=cv2.BORDER_REPLICATE)
+    img = img.astype(np.float64)
+    train = inlier
+    if params.color_hole_margin_px > 0 and missing.any():
+        k = 2 * int(params.color_hole_margin_px) + 1
+        near_hole = cv2.dilate(missing.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+        away = inlier & (near_hole == 0)
+        if away.sum() >= max(20, inlier.sum() // 4):
+            train = away
+    model = _colour_model(img, train, params)
+    p_c, ratio = model.evidence(img)
+    return model, p_c, ratio
 
 
 def _morph_clean(prob: np.ndarray, size: int) -> np.ndarray:
@@ -556,11 +608,145 @@ def _nearest_label(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return labels[near[..., 0], near[..., 1]], dist
 
 
+def _reconstruct(marker: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Grey-level morphological reconstruction by dilation of ``marker`` under ``mask`` (8-connected)."""
+    kernel = np.ones((3, 3), np.uint8)
+    out = np.minimum(marker, mask).astype(np.float32)
+    mask = mask.astype(np.float32)
+    while True:
+        nxt = np.minimum(cv2.dilate(out, kernel), mask)
+        if np.array_equal(nxt, out):
+            return out
+        out = nxt
+
+
+def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, np.ndarray]:
+    """Split touching objects in a labelled raster at the necks of their union (distance-transform watershed).
+
+    Two objects in contact form one evidence component shaped like two blobs joined by a neck (their
+    contact). The components' holes are filled first (a clear object is seen as an outline around a
+    see-through interior). The distance transform (DT, cells to the nearest non-evidence cell) of the
+    filled components has a maximum in each blob; the markers are the maxima whose *dynamic* (peak DT
+    minus the DT of the saddle joining them to a higher peak) is at least ``neck_cells``: the h-maxima
+    of the DT, i.e. both blobs are wider than the neck by at least 2 ``neck_cells`` in diameter. A
+    component with two or more markers is divided by a watershed of -DT from them (cells go to the
+    blob they are deepest in); an elongated object with a narrow part (a bottle's neck, a marker's
+    tip) has no maximum in the narrow part and stays whole.
+
+    Returns the new labels (split parts get fresh labels after the existing ones) and, per new label,
+    the label it came from (so that the parts are not joined again by later merging steps)."""
+    n = int(labels.max()) + 1
+    origin = np.arange(n)
+    if n <= 1 or neck_cells <= 0:
+        return labels, origin
+    filled = np.zeros(labels.shape, np.uint8)
+    contours, _ = cv2.findContours((labels > 0).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    n_f, lab_f = cv2.connectedComponents(filled, connectivity=8)
+    dist = cv2.distanceTransform(np.pad(filled, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    hmax = _reconstruct(np.maximum(dist - neck_cells, 0.0), dist)
+    eps = 1e-3
+    maxima = (hmax - _reconstruct(np.maximum(hmax - eps, 0.0), hmax) > eps / 2) & (filled > 0)
+    n_mark, markers = cv2.connectedComponents(maxima.astype(np.uint8), connectivity=8)
+    if n_mark <= 2:
+        return labels, origin
+    owner = np.zeros(n_mark, np.int64)
+    owner[markers[maxima]] = lab_f[maxima]
+    per_comp = np.bincount(owner[1:], minlength=n_f)
+    out = labels.astype(np.int32).copy()
+    origin = list(origin)
+    cost = (65535 - np.clip(np.round(dist * 16.0), 0, 65534)).astype(np.uint16)
+    for comp_id in np.nonzero(per_comp >= 2)[0]:
+        if comp_id == 0:
+            continue
+        comp = lab_f == comp_id
+        mk = np.where(comp & (markers > 0), markers, 0).astype(np.int32)
+        flooded = watershed_ift(np.where(comp, cost, 65535).astype(np.uint16), mk)
+        cells = comp & (labels > 0)
+        pairs = np.unique(np.stack([labels[cells], flooded[cells]], axis=1), axis=0)
+        seen: set[int] = set()
+        for lab, part in pairs:
+            if int(lab) not in seen:  # the first part of each original label keeps the label
+                seen.add(int(lab))
+                continue
+            out[cells & (labels == lab) & (flooded == part)] = len(origin)
+            origin.append(int(lab))
+    return out, np.asarray(origin)
+
+
+def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
+                       origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Split an object standing on or next to a flat one (a notebook, a plate, a tray) from it.
+
+    ``cell_height`` (m, NaN = no depth-seen evidence in the cell) is the mean height of each raster
+    cell's depth-seen pixels. Within a component, cells whose heights differ by at most
+    ``FLAT_STEP_M`` from a 4-neighbour form *smooth* regions (the flat top of a notebook varies by
+    ~1 mm from cell to cell; the feet of a box's walls and the rims of a clear object jump by
+    centimetres). If the largest smooth region covers at least ``FLAT_MIN_AREA_M2`` and the rest of
+    the component holds at least ``FLAT_MIN_AREA_M2`` / 4 of depth-seen cells more than ``FLAT_JUMP_M``
+    *above* it (something taller standing on or next to it), the component is split:
+    the flat region is one object, the rest is assigned to the flat region or to the other parts by a
+    watershed of -DT (cells go to the part they are deepest in), each other part keeping its own label.
+    A box's flat top is not a support: the feet of its walls lie *below* it. Limitation: one object
+    made of a large flat base and a taller part (a tray with a handle) is split too.
+
+    Returns the labels and the origin of every label (see :func:`split_touching`)."""
+    n = int(labels.max()) + 1
+    origin = np.arange(n) if origin is None else np.asarray(origin)
+    out = labels.astype(np.int32).copy()
+    origin = list(origin)
+    seen = np.isfinite(cell_height) & (labels > 0)
+    min_cells = FLAT_MIN_AREA_M2 / res ** 2
+    h = np.nan_to_num(cell_height)
+    # 4-neighbour smoothness edges between depth-seen cells of the same component
+    ny, nx = labels.shape
+    idx = np.arange(ny * nx).reshape(ny, nx)
+    rows, cols = [], []
+    for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
+        ok = seen[a] & seen[b] & (labels[a] == labels[b]) & (np.abs(h[a] - h[b]) <= FLAT_STEP_M)
+        rows.append(idx[a][ok])
+        cols.append(idx[b][ok])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(r.size), (r, c)), shape=(ny * nx, ny * nx))
+    _, smooth = connected_components(graph, directed=False)
+    smooth = np.where(seen.ravel(), smooth + 1, 0).reshape(ny, nx)
+    sizes = np.bincount(smooth.ravel())
+    sizes[0] = 0
+    dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    cost = (65535 - np.clip(np.round(dist * 16.0), 0, 65534)).astype(np.uint16)
+    for lab in range(1, n):
+        comp = labels == lab
+        regions = np.unique(smooth[comp & seen])
+        if regions.size == 0:
+            continue
+        flat = int(regions[np.argmax(sizes[regions])])
+        if sizes[flat] < min_cells:
+            continue
+        flat_cells = smooth == flat
+        h_flat = float(np.median(h[flat_cells]))
+        other = comp & seen & ~flat_cells & (h > h_flat + FLAT_JUMP_M)
+        if other.sum() < min_cells / 4:
+            continue
+        n_o, lab_o = cv2.connectedComponents(other.astype(np.uint8), connectivity=8)
+        markers = np.where(flat_cells, 1, np.where(lab_o > 0, lab_o + 1, 0)).astype(np.int32)
+        flooded = watershed_ift(np.where(comp, cost, 65535).astype(np.uint16), markers)
+        for part in range(2, n_o + 1):
+            sel = comp & (flooded == part)
+            if sel.any():
+                out[sel] = len(origin)
+                origin.append(int(origin[lab]) if lab < len(origin) else lab)
+    return out, np.asarray(origin)
+
+
 def _merge_across_small_holes(labels: np.ndarray, lab_miss: np.ndarray, n_miss: int, n_pos: int,
-                              touching: np.ndarray, res: float) -> np.ndarray:
+                              touching: np.ndarray, res: float, origin: np.ndarray | None = None) -> np.ndarray:
     """Objects touching the same small hole region (extent <= ``MISSING_BRIDGE_M``) are one object
-    (e.g. a specular band across a marker); large hole regions (drop-outs along the table) join nothing."""
+    (e.g. a specular band across a marker); large hole regions (drop-outs along the table) join nothing.
+    Parts of one component split at a neck (same ``origin``, :func:`split_touching`) are not joined again."""
     parent = np.arange(labels.max() + 1)
+    source = np.arange(parent.size)
+    if origin is not None:
+        source[:min(origin.size, source.size)] = origin[:source.size]
 
     def find(a: int) -> int:
         while parent[a] != a:
@@ -578,13 +764,15 @@ def _merge_across_small_holes(labels: np.ndarray, lab_miss: np.ndarray, n_miss: 
         ring = cv2.dilate((lab_miss == c).astype(np.uint8), np.ones((3, 3), np.uint8)) & grown
         near = np.unique(labels[(ring > 0) & (labels > 0) & (labels <= n_pos)])
         for other in near[1:]:
-            parent[find(int(other))] = find(int(near[0]))
+            if source[int(other)] != source[int(near[0])]:
+                parent[find(int(other))] = find(int(near[0]))
     roots = np.array([find(i) for i in range(parent.size)])
     return roots[labels].astype(np.int32)
 
 
 def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.ndarray, inlier_xy: np.ndarray,
-                      footprint_m: float, attach_m: float) -> tuple[_Raster, np.ndarray]:
+                      footprint_m: float, attach_m: float,
+                      height: np.ndarray | None = None) -> tuple[_Raster, np.ndarray]:
     """Rasterise the evidence pixels' feet over the table's extent and label connected components.
 
     Components are built from the positive evidence (depth or colour). Holes (missing pixels) are
@@ -617,6 +805,15 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
         return cv2.morphologyEx(m, cv2.MORPH_CLOSE, close)
 
     n_pos, lab_pos = cv2.connectedComponents(mark(use & ~missing), connectivity=8)
+    lab_pos, origin = split_touching(lab_pos, SPLIT_NECK_M / res)  # objects in contact (module docstring)
+    if height is not None:  # an object standing on / next to a flat one (notebook, plate)
+        seen = use & ~missing & np.isfinite(height)
+        h_sum = np.bincount(iy[seen] * nx + ix[seen], weights=height[seen], minlength=nx * ny)
+        h_cnt = np.bincount(iy[seen] * nx + ix[seen], minlength=nx * ny)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            cell_h = np.where(h_cnt > 0, h_sum / np.maximum(h_cnt, 1), np.nan).reshape(ny, nx)
+        lab_pos, origin = split_flat_support(lab_pos, cell_h, res, origin)
+    n_pos = int(lab_pos.max()) + 1
     n_miss, lab_miss = cv2.connectedComponents(mark(use & missing) & (lab_pos == 0).astype(np.uint8), connectivity=8)
     labels = lab_pos.astype(np.int32)
     if n_miss > 1:
@@ -636,10 +833,40 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
                 labels[cells] = owners[0]
         alone = (lab_miss > 0) & ~touching[lab_miss]
         labels[alone] = n_pos + lab_miss[alone]
-        labels = _merge_across_small_holes(labels, lab_miss, n_miss, n_pos, touching, res)
+        labels = _merge_across_small_holes(labels, lab_miss, n_miss, n_pos, touching, res, origin)
     raster.labels = labels
     px_labels = np.where(use, raster.labels[iy, ix], 0)
     return raster, px_labels
+
+
+def seen_through(raster: _Raster, target: int, foot_xy: np.ndarray, px_labels: np.ndarray, colour_only: np.ndarray,
+                 table_level: np.ndarray, close_m: float) -> np.ndarray:
+    """Pixels that see the table *through* the target: its enclosed interior (a transparent object's outline).
+
+    A clear object lying on the table is seen as an outline - specular edges, depth holes at its ends,
+    colour along its rims - around an interior where the sensor returns the table behind it (the paper's
+    "invalid measurements", section VI). In the table raster the target's component is closed with a
+    disc of radius ``close_m`` (gaps in the outline up to ~2 ``close_m``) and its holes are filled. The
+    pixels returned are table-level pixels (``table_level``: valid depth, no depth evidence) not given to
+    another object, whose foot lies (a) in a cell of the filled interior that is not in the component, or
+    (b) in the component's core (its filled shape eroded by the closing disc: not the outline) with colour
+    evidence only (``colour_only``; ``SensingParams.transparent_core_occupied``, off by default: the paper's
+    Object A keeps a transparent part seen in colour only out of the mean shape). The caller makes them
+    object in the occupancy map with colour/hole evidence only (p_c = 1 against the table-level depth: the
+    masks disagree, the cells are uncertain), never observed-depth table. An opaque object's interior is
+    seen in depth (no such pixels); a thin colour-only part (a transparent arm) has no core."""
+    comp = (raster.labels == target).astype(np.uint8)
+    r = max(1, int(round(close_m / raster.res)))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    closed = cv2.morphologyEx(np.pad(comp, r + 1), cv2.MORPH_CLOSE, disc)[r + 1:-r - 1, r + 1:-r - 1]
+    filled = np.zeros_like(closed)
+    contours, _ = cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    interior = (filled > 0) & (comp == 0)
+    core = cv2.erode(filled, disc) > 0
+    ix, iy, ok = raster.cell(foot_xy)
+    free = (px_labels == 0) | (px_labels == target)
+    return ok & free & table_level & (interior[iy, ix] | (core[iy, ix] & colour_only))
 
 
 def minimum_width(xy: np.ndarray) -> float:
@@ -921,9 +1148,8 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     ray_n = np.abs(rays @ normal)  # height error per unit depth error along the ray
     s_h = np.sqrt(var_z) * np.maximum(ray_n, 1e-3)
     p_d = np.where(valid, ndtr((np.nan_to_num(height) - h_thr) / s_h), 0.0)
-    table_rgb, c_thr, c_sigma, dark_ratio = _colour_model(rgb_mean, inlier, params)
-    c_dist, c_ratio = shadow_line_distance(rgb_mean, table_rgb)
-    p_c = ndtr((c_dist - c_thr) / c_sigma)
+    colour, p_c, c_ratio = _colour_evidence(rgb_mean, inlier, missing_px, params)
+    table_rgb, c_thr, dark_ratio = colour.table_rgb, colour.threshold, colour.dark_ratio
     p_d = _morph_clean(p_d, params.morph_kernel_px)
     p_c = _morph_clean(p_c, params.morph_kernel_px)
     # darker than the table on its shadow line: shadow or a dark object of the table's hue - colour
@@ -965,11 +1191,19 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         fx_, fy_ = foot_xy[..., 0], foot_xy[..., 1]
         evidence &= (fx_ >= x0) & (fx_ <= x1) & (fy_ >= y0) & (fy_ <= y1)
     inlier_xy = foot_xy[inlier]
-    raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M)
+    raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
+                                          np.where(p_d > 0.5, height, np.nan))
     target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics)
     target_px = px_labels == target
     target_xy = foot_xy[target_px]
     _check_target(target_px, target_xy, raster.labels == target, raster.res, params, intrinsics)
+    colour_core = (p_c > 0.5) & (p_d <= 0.5) & params.transparent_core_occupied
+    through = seen_through(raster, target, foot_xy, px_labels, colour_core, valid & (p_d <= 0.5)
+                           & (np.abs(np.nan_to_num(height)) <= h_thr), params.transparent_close_m)
+    # seen through a transparent target: colour/hole evidence only - object in the occupancy, depth and colour
+    # disagree (uncertain cells, like the paper's Object A), never observed-depth table
+    target_px, occ, p_c = target_px | through, np.where(through, 1.0, occ), np.where(through, 1.0, p_c)
+    target_xy = foot_xy[target_px]
 
     # 6. square grid in the table plane around the target's footprint
     lo, hi = target_xy.min(axis=0), target_xy.max(axis=0)
