@@ -630,3 +630,57 @@ def test_opaque_box_keeps_its_calibrated_mean_shape():
     assert result.train_mask.all()
     inside_true, inside_mean = truth < 0, post.mean < 0
     assert np.count_nonzero(inside_true & inside_mean) / np.count_nonzero(inside_true | inside_mean) > 0.85
+
+
+def test_unknown_cells_are_object_and_untrained_on_both_paths():
+    """build_gpis and the node path (publishable_grids -> posterior_from_grids) train on the same cells and
+    count every unknown cell as object (-1 in the published grid)."""
+    from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
+    from gpis_grasp_ros.core.sensing import segment_frames
+
+    rgb, depth, intr, _, _ = _rendered_scene(4)
+    result = segment_frames(rgb, depth, intr)
+    occ, noise, geometry = publishable_grids(result)
+    unknown = ~result.train_mask
+    assert unknown.sum() >= 10 and np.all(occ[unknown] == -1) and np.all(np.isnan(noise[unknown]))
+    assert np.mean(result.occupancy[unknown & ~result.missing] < 0.5) > 0.75  # free in the blend, yet unknown
+    fixed = GpisParams(optimize_hyperparameters=False, signal_variance=1e-4, length_scale=0.01)
+    a = build_gpis(result, fixed)
+    b = posterior_from_grids(occ, noise, geometry, fixed)
+    assert a.train_y.size == b.train_y.size == int(result.train_mask.sum())
+    np.testing.assert_allclose(a.mean, b.mean, atol=1e-6)
+    np.testing.assert_allclose(np.sqrt(a.variance), np.sqrt(b.variance), atol=1e-6)
+
+
+def test_extended_regions_drop_thin_rings_and_keep_blocks():
+    from gpis_grasp_ros.core.sensing import _extended_regions
+
+    mask = np.zeros((20, 20), dtype=bool)
+    mask[2:9, 2] = mask[2:9, 8] = mask[2, 2:9] = mask[8, 2:9] = True  # one-cell ring: edge noise
+    mask[12:15, 12:18] = True  # 3 x 6 block: an unseen part
+    mask[11, 11] = True  # touching the block diagonally: same component
+    mask[17:19, 2:10] = True  # two-cell band: edge noise
+    out = _extended_regions(mask)
+    expected = np.zeros_like(mask)
+    expected[12:15, 12:18] = True
+    expected[11, 11] = True
+    assert np.array_equal(out, expected)
+    assert not _extended_regions(np.zeros((5, 5), dtype=bool)).any()
+
+
+def test_foreign_missing_fraction_counts_pixels_per_cell():
+    from gpis_grasp_ros.core.sensing import _foreign_missing_fraction
+
+    rng = np.random.default_rng(0)
+    m, n = 4, 4000
+    row, col = rng.integers(-1, m + 1, n).astype(float), rng.integers(-1, m + 1, n).astype(float)
+    in_grid = (row >= 0) & (row < m) & (col >= 0) & (col < m)
+    foreign = rng.random(n) < np.where(row == 1, 0.9, 0.1)  # row 1 of the grid is mostly no-return
+    informative = in_grid & ~foreign & (rng.random(n) < 0.8)
+    frac = _foreign_missing_fraction(row, col, in_grid, informative, foreign, m)
+    for r in range(m):
+        for c in range(m):
+            cell = in_grid & (row == r) & (col == c)
+            nf, ns = np.count_nonzero(cell & foreign), np.count_nonzero(cell & informative)
+            assert frac[r, c] == pytest.approx(nf / (nf + ns) if nf else 0.0)
+    assert np.all(frac[1] > 0.8) and np.all(np.delete(frac, 1, axis=0) < 0.3)
