@@ -29,6 +29,9 @@ from numba import njit
 #: Roots within this tolerance (cells, plus the same relative to the segment) of a segment still count.
 ROOT_TOL = 1e-6
 
+#: Bounded jumps (see :func:`first_crossing`) are taken while they exceed this many cells.
+JUMP_MIN_CELLS = 1.0
+
 
 @njit(cache=True, nogil=True, inline='always')
 def _bilinear(grid, u, v):
@@ -67,12 +70,58 @@ def _smallest_root(q0, q1, q2, dd):
 
 
 @njit(cache=True, nogil=True)
-def first_crossing(grid, px, py, ux, uy, length):
+def first_crossing(grid, px, py, ux, uy, length, lipschitz=0.0):
     """First zero crossing (cells from the start) of the bilinear SDF on the segment from (px, py)
     (padded cell coordinates) along the unit vector (ux, uy) for ``length`` cells.
 
-    Returns ``(t, hit)``; ``hit`` is False when f > 0 along the whole segment (t is then 0).
+    ``lipschitz`` (m per cell, 0: unused) bounds the gradient norm of the bilinear interpolant on
+    the whole padded grid (:func:`lipschitz_bounds`). Where f > 0 there is then no zero within
+    f / lipschitz cells, so the walk first jumps ahead in steps of that size (sphere tracing with
+    a proven bound, not a heuristic) while they exceed :data:`JUMP_MIN_CELLS`; the crossing found
+    is the same. Returns ``(t, hit)``; ``hit`` is False when f > 0 along the whole segment.
     """
+    t_skip = 0.0
+    if lipschitz > 0:
+        f = _bilinear(grid, px, py)
+        while f > JUMP_MIN_CELLS * lipschitz:
+            t_skip += f / lipschitz
+            if t_skip >= length:
+                return 0.0, False
+            f = _bilinear(grid, px + t_skip * ux, py + t_skip * uy)
+        if t_skip > 0:
+            t, hit = _walk(grid, px + t_skip * ux, py + t_skip * uy, ux, uy, length - t_skip)
+            return t_skip + t, hit
+    return _walk(grid, px, py, ux, uy, length)
+
+
+@njit(cache=True, nogil=True)
+def lipschitz_bounds(grids):
+    """Per grid (B, Hp, Wp): the Lipschitz constant (m per cell) of its bilinear interpolant.
+
+    In a cell ∇f = (k1 + k3·fy, k2 + k3·fx) is affine in (fx, fy), so ‖∇f‖² is convex and its
+    maximum over the cell is reached at a corner, where the gradient is the pair of differences
+    along the two cell edges meeting there. The maximum over all cells and corners is the exact
+    bound (f is continuous across cells), ~1 cell of SDF per cell for a true SDF.
+    """
+    b, hp, wp = grids.shape
+    out = np.zeros(b)
+    for k in range(b):
+        best = 0.0
+        for i in range(hp - 1):
+            for j in range(wp - 1):
+                top = grids[k, i, j + 1] - grids[k, i, j]
+                bottom = grids[k, i + 1, j + 1] - grids[k, i + 1, j]
+                left = grids[k, i + 1, j] - grids[k, i, j]
+                right = grids[k, i + 1, j + 1] - grids[k, i, j + 1]
+                best = max(best, top * top + left * left, top * top + right * right,
+                           bottom * bottom + left * left, bottom * bottom + right * right)
+        out[k] = math.sqrt(best) * (1.0 + 1e-9)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _walk(grid, px, py, ux, uy, length):
+    """The cell-by-cell walk of :func:`first_crossing` (no jumps)."""
     hp, wp = grid.shape
     ax = abs(ux)
     ay = abs(uy)
@@ -135,12 +184,13 @@ def first_crossing(grid, px, py, ux, uy, length):
 
 
 @njit(cache=True, nogil=True)
-def exact_contacts(grids, index, ax, ay, ux, uy, length, offsets, pad, patch_tol, contacts, no_contact, inside,
-                   clearance):
+def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad, patch_tol, contacts, no_contact,
+                   inside, clearance):
     """Contacts of T trials (jaw 1 at (ax, ay), unpadded cells, closing along (ux, uy) for ``length``
     cells) on face lines at ``offsets`` (cells) across the jaw; every line on the padded grid.
 
-    ``grids`` (B, Hp, Wp) padded SDFs (m), ``index`` (T,) grid of each trial. Fills ``contacts``
+    ``grids`` (B, Hp, Wp) padded SDFs (m), ``lipschitz`` (B,) their :func:`lipschitz_bounds` (zeros:
+    walk every cell), ``index`` (T,) grid of each trial. Fills ``contacts``
     (2, T, 2) (unpadded cells, jaw 1 then jaw 2), ``no_contact`` (T,), ``inside`` (T,) (a face
     line starts or ends at f <= 0) and ``clearance`` (2, T) (min f (m) over each jaw face).
     The contact patch is that of :func:`contacts._march_chunk` (linear ramp over ``patch_tol``
@@ -149,9 +199,10 @@ def exact_contacts(grids, index, ax, ay, ux, uy, length, offsets, pad, patch_tol
     n_t = ax.shape[0]
     n_l = offsets.shape[0]
     t_hit = np.empty((2, n_l))
-    has = np.empty(n_l, dtype=np.bool_)
+    has = np.empty((2, n_l), dtype=np.bool_)
     for t in range(n_t):
         grid = grids[index[t]]
+        lip = lipschitz[index[t]]
         vx = ux[t]
         vy = uy[t]
         ln = length[t]
@@ -161,6 +212,10 @@ def exact_contacts(grids, index, ax, ay, ux, uy, length, offsets, pad, patch_tol
         clear1 = math.inf
         into = False
         any_hit = False
+        # Crossings farther than (first touch + patch_tol) from a jaw get zero patch weight, so each
+        # walk stops there: the windows only shrink as lines are added, never below the final one.
+        reach1 = ln
+        reach2 = ln
         for k in range(n_l):
             ox = ax[t] + pad + offsets[k] * perp_x
             oy = ay[t] + pad + offsets[k] * perp_y
@@ -172,13 +227,23 @@ def exact_contacts(grids, index, ax, ay, ux, uy, length, offsets, pad, patch_tol
             clear1 = min(clear1, f1)
             if f0 <= 0 or f1 <= 0:
                 into = True
-            s1, h1 = first_crossing(grid, ox, oy, vx, vy, ln)
-            has[k] = h1
-            if h1:
-                any_hit = True
-                s2, h2 = first_crossing(grid, ex, ey, -vx, -vy, ln)
-                t_hit[0, k] = s1
-                t_hit[1, k] = ln - s2 if h2 else s1
+            s1, h1 = first_crossing(grid, ox, oy, vx, vy, reach1, lip)
+            has[0, k] = h1
+            has[1, k] = False
+            if h1 or reach1 < ln:  # a crossing, or the walk stopped at the window: try from jaw 2
+                s2, h2 = first_crossing(grid, ex, ey, -vx, -vy, reach2, lip)
+                has[1, k] = h2
+                if h1:
+                    t_hit[0, k] = s1
+                    any_hit = True
+                    reach1 = min(reach1, s1 + patch_tol)
+                if h2:
+                    t_hit[1, k] = ln - s2
+                    any_hit = True
+                    reach2 = min(reach2, s2 + patch_tol)
+                elif h1 and reach2 >= ln:  # round-off: the whole line walked back without the touch seen
+                    has[1, k] = True
+                    t_hit[1, k] = s1
         inside[t] = into
         no_contact[t] = not any_hit
         clearance[0, t] = clear0
@@ -187,14 +252,14 @@ def exact_contacts(grids, index, ax, ay, ux, uy, length, offsets, pad, patch_tol
             sign = 1.0 if side == 0 else -1.0
             tau_min = math.inf
             for k in range(n_l):
-                if has[k]:
+                if has[side, k]:
                     tau_min = min(tau_min, sign * t_hit[side, k])
             total = 0.0
             o_sum = 0.0
             t_sum = 0.0
             if any_hit:
                 for k in range(n_l):
-                    if not has[k]:
+                    if not has[side, k]:
                         continue
                     w = 1.0 - (sign * t_hit[side, k] - tau_min) / patch_tol
                     w = min(max(w, 0.0), 1.0)
@@ -209,3 +274,46 @@ def exact_contacts(grids, index, ax, ay, ux, uy, length, offsets, pad, patch_tol
             tm = t_sum / total
             contacts[side, t, 0] = ax[t] + o * perp_x + tm * vx
             contacts[side, t, 1] = ay[t] + o * perp_y + tm * vy
+
+
+@njit(cache=True, nogil=True)
+def unit_normals(gradients, index, contacts, min_norm, out):
+    """Unit outward normals ``out`` (2, T, 2) at ``contacts`` (2, T, 2) (unpadded cells, clamped to
+    the grid): the bilinearly interpolated gradient of grid ``index[t]`` of ``gradients`` (B, H, W, 2),
+    normalised; zero where its norm is <= ``min_norm`` (no normal) or the contact is NaN."""
+    h = gradients.shape[1]
+    w = gradients.shape[2]
+    for side in range(2):
+        for t in range(contacts.shape[1]):
+            u = contacts[side, t, 0]
+            v = contacts[side, t, 1]
+            if not (math.isfinite(u) and math.isfinite(v)):
+                out[side, t, 0] = 0.0
+                out[side, t, 1] = 0.0
+                continue
+            u = min(max(u, 0.0), w - 1.0)
+            v = min(max(v, 0.0), h - 1.0)
+            j = min(int(u), w - 2)
+            i = min(int(v), h - 2)
+            fx = u - j
+            fy = v - i
+            b = index[t]
+            gx = 0.0
+            gy = 0.0
+            for k in range(2):
+                f00 = gradients[b, i, j, k]
+                f01 = gradients[b, i, j + 1, k]
+                f10 = gradients[b, i + 1, j, k]
+                f11 = gradients[b, i + 1, j + 1, k]
+                val = f00 + (f01 - f00) * fx + fy * ((f10 - f00) + (f11 - f01 - f10 + f00) * fx)
+                if k == 0:
+                    gx = val
+                else:
+                    gy = val
+            norm = math.sqrt(gx * gx + gy * gy)
+            if norm > min_norm:
+                out[side, t, 0] = gx / norm
+                out[side, t, 1] = gy / norm
+            else:
+                out[side, t, 0] = 0.0
+                out[side, t, 1] = 0.0

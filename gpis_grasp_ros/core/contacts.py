@@ -53,12 +53,20 @@ Choices where the paper is silent (documented here, relied on by :mod:`quality` 
   ``check_opening=False`` for the perturbed jaws, because positioning noise is an execution
   error, not a command the gripper could refuse.
 
-**Performance.** Everything is vectorised over a flat batch of "trials" (a perturbed grasp
-paired with one SDF of a bank, e.g. G grasps × S shape samples), processed in chunks of about
-65k interpolated points so temporaries stay in cache and are reused between chunks (a
-per-thread workspace avoids re-faulting fresh large arrays). The bank stores, per cell of a
-padded grid, the 4 bilinear coefficients as one float32 record, so each lookup is a single
-gather; sample positions are float32 (1e-6 cell round-off).
+**Performance.** Contacts (exact crossings, patch) and normals of trials on the padded grid are
+found by compiled numba kernels (:mod:`contact_kernel`, float64): each face line is walked cell
+by cell from each jaw, first jumping ahead by f / L where the grid's Lipschitz constant L proves
+there is no zero, and the walk stops at the first crossing — or as soon as it is farther than
+the contact-patch tolerance beyond the nearest touch found on the other lines (such a crossing
+has zero patch weight) — instead of solving the quadratic on every cell of every line: about
+7x less CPU per call on the planners benchmark than the vectorised implementation, which is
+kept as the reference (``compiled=False``) and for lines that leave the padded grid. There
+everything is vectorised over a flat batch of
+"trials" (a perturbed grasp paired with one SDF of a bank, e.g. G grasps × S shape samples),
+processed in chunks of about 65k interpolated points so temporaries stay in cache and are reused
+between chunks (a per-thread workspace avoids re-faulting fresh large arrays). The bank stores,
+per cell of a padded grid, the 4 bilinear coefficients as one float32 record, so each lookup is a
+single gather; sample positions are float32 (1e-6 cell round-off).
 """
 
 from __future__ import annotations
@@ -69,7 +77,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from gpis_grasp_ros.core.contact_kernel import exact_contacts
+from gpis_grasp_ros.core.contact_kernel import exact_contacts, lipschitz_bounds, unit_normals
 from gpis_grasp_ros.core.grid import GridGeometry
 
 #: Interpolated points per chunk in :func:`find_contacts`: small enough for the temporaries to stay in
@@ -241,8 +249,10 @@ class SdfBank:
     (``f(nearest node) + distance``), so jaws a few cells off the grid need no clamping; farther
     points are clamped to the padded grid and the remaining distance is added. Coefficients are
     stored in ``dtype`` (float32 by default: a 1000-sample bank of a 25 x 25 grid takes ~42 MB
-    with the gradient coefficients; SDF round-off ~1e-8 m). ``sdfs`` keeps the float64 grids.
-    Read-only after construction (safe to share between threads).
+    with the gradient coefficients; SDF round-off ~1e-8 m) for the vectorised numpy path;
+    ``padded`` and ``gradient_grids`` keep float64 copies for the compiled kernel (another ~21 MB
+    for that bank). ``sdfs`` keeps the float64 grids. Read-only after construction (safe to share
+    between threads; the Lipschitz bounds are computed once on first use).
     """
 
     def __init__(self, sdfs: np.ndarray, geometry: GridGeometry, gradients: np.ndarray | None = None,
@@ -276,11 +286,22 @@ class SdfBank:
         record = _RECORD[self._coef_dtype.char]
         #: float64 padded grids (B, Hp, Wp) read by the compiled kernel (:mod:`contact_kernel`)
         self.padded = np.ascontiguousarray(_pad_extrapolated(sdfs, self.pad, res))
+        self._lipschitz: np.ndarray | None = None
         self._coef_rec = _coefficient_records(self.padded, dtype).view(record).reshape(-1)
         self._cells_padded = self._ph * self._pw
         self._float_index_exact = self.n * self._cells_padded < 2 ** 24
         self._grad_rec = tuple(_coefficient_records(gc, dtype).view(record).reshape(-1) for gc in (gx, gy))
+        #: float64 gradient grids (B, H, W, 2) read by the compiled normals (:func:`contact_kernel.unit_normals`)
+        self.gradient_grids = np.ascontiguousarray(np.stack([gx, gy], axis=-1), dtype=np.float64)
         self._cells_per_grid = geometry.height * geometry.width
+
+    @property
+    def lipschitz(self) -> np.ndarray:
+        """(B,) bounds (m per cell) on the gradient norm of each padded grid's bilinear interpolant
+        (computed on first use; :func:`contact_kernel.lipschitz_bounds`)."""
+        if self._lipschitz is None:
+            self._lipschitz = lipschitz_bounds(self.padded)
+        return self._lipschitz
 
     def _locate(self, u: np.ndarray, v: np.ndarray, index: np.ndarray | None):
         """Flat cell index and fractional offsets of unpadded cell coordinates (clamped to the grid)."""
@@ -507,7 +528,12 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
 
     # Outward normals of the SDF each trial closed on, at both contacts at once.
     cm = g.to_metric(c)  # (2, T, 2)
-    normals = bank.normals_at(cm, None if idx is None else idx[None, :])
+    if use_kernel:
+        normals = np.empty((2, t_total, 2))
+        unit_normals(bank.gradient_grids, np.zeros(t_total, dtype=np.intp) if idx is None else idx,
+                     np.ascontiguousarray(c), MIN_GRADIENT_NORM, normals)
+    else:
+        normals = bank.normals_at(cm, None if idx is None else idx[None, :])
     # A vanishing gradient (flat SDF) defines no normal: the contact is invalid (never a made-up
     # direction, which would look perfectly antipodal).
     flat = ~np.any(normals != 0, axis=2)
@@ -721,7 +747,7 @@ def _kernel_on_padded(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np
     no_contact = np.empty(n_t, dtype=bool)
     inside = np.empty(n_t, dtype=bool)
     clear = np.empty((2, n_t))
-    exact_contacts(bank.padded, index, np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]),
+    exact_contacts(bank.padded, bank.lipschitz, index, np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]),
                    np.ascontiguousarray(unit[:, 0]), np.ascontiguousarray(unit[:, 1]),
                    np.ascontiguousarray(length, dtype=np.float64), np.ascontiguousarray(offsets, dtype=np.float64),
                    float(bank.pad), float(patch_tol), c, no_contact, inside, clear)

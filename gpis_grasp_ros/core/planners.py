@@ -53,8 +53,10 @@ Design decisions (where the paper is silent or ambiguous):
   in free space, opening <= w_g. 4 N_g valid heuristic grasps are drawn and N_g kept by
   farthest-point sampling in grasp space, so the restarts cover the object rather than repeat
   near-identical grasps (the heuristic picks among a few hundred surface points). The SCP runs
-  in lock-step for all restarts (one batched objective call and one block-diagonal OSQP solve
-  per iteration) until each restart meets the convergence test of :mod:`scp` — step tolerance
+  in lock-step for all restarts (one batched objective call and one call of the exact
+  active-set QP solver for all restarts per iteration; eq. 6 on the perturbed jaws uses the
+  compiled contact kernel of :mod:`contact_kernel`) until each restart meets the convergence
+  test of :mod:`scp` — step tolerance
   ``scp_step_tol_cells`` (0.05 cell, a tenth of σ_g) with objective tolerance
   ``scp_objective_tol`` (1e-4), or a stationary model (``scp_model_tol``), or a trust box below
   ``trust_radius_min_cells`` — or the cap ``max_scp_iterations`` (100, a safeguard; on the
@@ -87,8 +89,9 @@ Design decisions (where the paper is silent or ambiguous):
 * **Reported P_F.** Every method's final ``p_f`` comes from the same routine on the same
   *evaluation* sample set (S shapes and perturbations drawn from a dedicated random stream of
   the seed, independent of any sample used for selection), so methods are comparable and GP-P's
-  estimate carries no winner's-curse bias. ``planning_time`` is the time to choose the grasp;
-  ``evaluation_time`` the time of that final estimate.
+  estimate carries no winner's-curse bias. ``planning_time`` is the (wall-clock) time to choose the grasp,
+  ``planning_cpu_time`` the CPU time of the process over the same span (less sensitive to other
+  jobs on a shared machine); ``evaluation_time`` the time of that final estimate.
 * **Seeding.** ``np.random.SeedSequence(seed)`` is split into independent streams (candidate
   sampling, perturbation draws, selection samples, evaluation samples); the same seed and the
   same posterior give the same grasp.
@@ -173,7 +176,7 @@ class RestartInfo:
     why it stopped: iteration cap, constraints violated at the maximum penalty, failed QPs);
     ``iterations`` QP solves; ``objective_history`` the eq. 6 value at the start and after every
     SCP iteration (before the final opening fix, so its last entry can differ from
-    ``objective`` by the shrink); ``qp_failures``/``qp_status`` failed OSQP solves and the last
+    ``objective`` by the shrink); ``qp_failures``/``qp_status`` failed QP solves and the last
     failure status ('' if none); ``initial_feasible`` whether the initial grasp met every
     constraint; ``feasible`` whether the returned grasp does.
     """
@@ -192,8 +195,8 @@ class RestartInfo:
     p_f: float = float('nan')  # Monte-Carlo P_F (re-ranked planner only)
     objective_history: np.ndarray = field(default_factory=lambda: np.zeros(0))  # eq. 6 value per SCP iteration
     initial_feasible: bool = False  # the initial grasp already met every constraint (to constraint_tol)
-    qp_failures: int = 0  # QP subproblems OSQP failed to solve during this run
-    qp_status: str = ''  # last failed OSQP status ('' when every QP solved)
+    qp_failures: int = 0  # QP subproblems the QP solver failed to solve during this run
+    qp_status: str = ''  # last failed QP status ('' when every QP solved)
 
 
 @dataclass
@@ -228,6 +231,7 @@ class GraspResult:
     restarts: list[RestartInfo] = field(default_factory=list)
     seed: int | None = None
     stopped: str = ''  # reason a PlanControl stopped the plan ('' when it ran to the end)
+    planning_cpu_time: float = float('nan')  # CPU time (s, process-wide) of the planning part (less load-dependent)
 
 
 @dataclass(frozen=True)
@@ -280,6 +284,7 @@ class _Tracker:
 
     def __init__(self, control: PlanControl | None, total: int = 0) -> None:
         self.control = control
+        self.cpu_start = time.process_time()  # CPU time (s, all threads) at the start of the plan
         self.total = int(total)
         self.done = 0
         self.best_objective = float('nan')
@@ -546,6 +551,7 @@ def _finish(ctx: PlanningContext, method: str, jaw1: np.ndarray, jaw2: np.ndarra
             tracker: _Tracker | None = None, **kw) -> GraspResult:
     """Fill a GraspResult: geometry of the grasp, Q_F on the mean, evaluation P_F."""
     planning_time = time.perf_counter() - t_start
+    planning_cpu_time = float('nan') if tracker is None else time.process_time() - tracker.cpu_start
     jaw1 = np.asarray(jaw1, dtype=np.float64).reshape(2)
     jaw2 = np.asarray(jaw2, dtype=np.float64).reshape(2)
     width = float(np.linalg.norm(jaw2 - jaw1))
@@ -565,7 +571,8 @@ def _finish(ctx: PlanningContext, method: str, jaw1: np.ndarray, jaw2: np.ndarra
                        center=0.5 * (jaw1 + jaw2), axis=axis, width=width,
                        q_mean=q if np.isfinite(q) else float('nan'), p_f=float(est.p[0]),
                        p_f_std_error=float(est.std_error[0]), objective=float(objective),
-                       planning_time=planning_time, evaluation_time=time.perf_counter() - t_eval, seed=seed, **kw)
+                       planning_time=planning_time, evaluation_time=time.perf_counter() - t_eval, seed=seed,
+                       planning_cpu_time=planning_cpu_time, **kw)
 
 
 def evaluation_samples(ctx: PlanningContext, rng: np.random.Generator) -> ShapeSamples:

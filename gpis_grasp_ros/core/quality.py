@@ -44,6 +44,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from gpis_grasp_ros.core.contacts import Contacts, GripperParams, SdfBank, find_contacts, perturb_grasps
 from gpis_grasp_ros.core.gpis import GpisPosterior, center_of_mass
@@ -133,10 +134,75 @@ def torque_scale(sdf: np.ndarray, geometry: GridGeometry, com: np.ndarray | None
     return max(rho, geometry.resolution)
 
 
+@njit(cache=True, nogil=True)
+def _quality_kernel(c, n, com, valid, gamma, rho, out):
+    """Compiled :func:`ferrari_canny_l1` for T trials (c, n (T, 2, 2), com (T, 2)); −inf where not
+    ``valid`` or not finite (the closed form of :func:`hull_ball_radius`, facet by facet)."""
+    w = np.empty((4, 3))
+    for t in range(c.shape[0]):
+        if not valid[t]:
+            out[t] = -np.inf
+            continue
+        for k in range(2):
+            nx = n[t, k, 0]
+            ny = n[t, k, 1]
+            rx = c[t, k, 0] - com[t, 0]
+            ry = c[t, k, 1] - com[t, 1]
+            for e in range(2):
+                sg = 1.0 if e == 0 else -1.0
+                fx = -nx + sg * gamma * (-ny)
+                fy = -ny + sg * gamma * nx
+                w[2 * k + e, 0] = fx
+                w[2 * k + e, 1] = fy
+                w[2 * k + e, 2] = (rx * fy - ry * fx) / rho
+        q = np.inf
+        side_max = 0.0
+        finite = True
+        for f in range(4):
+            i0 = 1 if f == 0 else 0
+            i1 = 2 if f <= 1 else 1
+            i2 = 3 if f <= 2 else 2
+            ax, ay, az = w[i0, 0], w[i0, 1], w[i0, 2]
+            bx, by, bz = w[i1, 0] - ax, w[i1, 1] - ay, w[i1, 2] - az
+            cx, cy, cz = w[i2, 0] - ax, w[i2, 1] - ay, w[i2, 2] - az
+            nx = by * cz - bz * cy
+            ny = bz * cx - bx * cz
+            nz = bx * cy - by * cx
+            side = nx * (w[f, 0] - ax) + ny * (w[f, 1] - ay) + nz * (w[f, 2] - az)
+            sign = -1.0 if side > 0 else 1.0
+            norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+            dist = sign * (nx * ax + ny * ay + nz * az) / (norm if norm > 0 else 1.0)
+            if not (math.isfinite(dist) and math.isfinite(side)):
+                finite = False
+            q = min(q, dist)
+            side_max = max(side_max, abs(side))
+        if not finite:
+            out[t] = -np.inf
+        elif side_max < 1e-12:
+            out[t] = 0.0
+        else:
+            out[t] = q
+
+
 def grasp_quality(contacts: Contacts, com: np.ndarray, gripper: GripperParams, rho: float) -> np.ndarray:
-    """Q_F of a batch of contacts (``com`` broadcastable to ``(..., 2)``); −inf for degenerate grasps."""
-    q = ferrari_canny_l1(contacts.c1, contacts.c2, contacts.n1, contacts.n2, com, gripper.friction_coef, rho)
-    return np.where(contacts.valid & np.isfinite(q), q, -np.inf)
+    """Q_F of a batch of contacts (``com`` broadcastable to ``(..., 2)``); −inf for degenerate grasps.
+
+    Compiled (:func:`_quality_kernel`); :func:`ferrari_canny_l1` is the vectorised numpy form of
+    the same closed form (the tests check they agree).
+    """
+    lead = contacts.valid.shape
+    flat = int(np.prod(lead, dtype=np.int64))
+    c = np.empty((flat, 2, 2))
+    n = np.empty((flat, 2, 2))
+    c[:, 0] = np.broadcast_to(contacts.c1, lead + (2,)).reshape(-1, 2)
+    c[:, 1] = np.broadcast_to(contacts.c2, lead + (2,)).reshape(-1, 2)
+    n[:, 0] = np.broadcast_to(contacts.n1, lead + (2,)).reshape(-1, 2)
+    n[:, 1] = np.broadcast_to(contacts.n2, lead + (2,)).reshape(-1, 2)
+    com_flat = np.ascontiguousarray(np.broadcast_to(np.asarray(com, dtype=np.float64), lead + (2,)).reshape(-1, 2))
+    out = np.empty(flat)
+    _quality_kernel(c, n, com_flat, np.ascontiguousarray(contacts.valid, dtype=np.bool_).reshape(-1),
+                    float(gripper.friction_coef), float(rho), out)
+    return out.reshape(lead)
 
 
 @dataclass

@@ -46,7 +46,12 @@ convex optimization" (RSS 2013), Algorithm 1:
   A run that ends otherwise is *not* converged and says why: the iteration cap
   (``max_iterations``), constraints still violated at ``penalty_max``, or
   ``max_qp_failures`` consecutive failed QP subproblems.
-* **QP status.** OSQP's status is checked on every solve: only ``solved`` / ``solved inaccurate``
+* **QP solver.** ``qp_solver='active-set'`` (default) solves each subproblem exactly with the
+  compiled primal active-set method of :mod:`small_qp` (all restarts in one call, microseconds
+  each); ``'osqp'`` uses OSQP (ADMM, accurate to ``osqp_eps``, polished). Both solve the same QP;
+  with polishing OSQP returns the same active-set solution, so the runs agree (tested), and the
+  exact solver is ~20x cheaper per subproblem on the planners' benchmark.
+* **QP status.** The solver's status is checked on every solve: only ``solved`` / ``solved inaccurate``
   with a finite step is used. A failed subproblem is never read as stationarity (a zero step would
   otherwise look converged): the box shrinks and the failure is counted per restart
   (``ScpResult.qp_failures``, ``qp_status``).
@@ -54,9 +59,12 @@ convex optimization" (RSS 2013), Algorithm 1:
   merit at the start and after every iteration it took part in (the supplementary convergence
   plots of the paper).
 
-**Batching.** All restarts advance in lock-step: one block-diagonal OSQP problem holds every
-restart's subproblem (inactive restarts get a trivial block) and is set up once; each iteration
-only updates its vectors and the constraint-Jacobian values (``OSQP.update``), then solves. The
+**Batching.** All restarts advance in lock-step; each restart has its own subproblem, solved
+for the active restarts only, so a failed subproblem concerns only its restart. With OSQP each
+restart has its own small problem, set up once (on its first iteration); each iteration only
+updates its vectors and matrix values (``OSQP.update``, warm-started from the previous solution)
+and solves it. (An earlier version put all restarts in one block-diagonal OSQP problem: it runs
+as many ADMM iterations as its hardest block needs and fails for all restarts at once.) The
 objective/constraint function is called on a batch of points (all candidates, or all
 finite-difference points of all restarts, at once), so it can be vectorised by the caller.
 
@@ -77,6 +85,8 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from gpis_grasp_ros.core.small_qp import STATUS_TEXT, trust_region_steps
+
 #: ``fun(X (B, n)) -> (f (B,), g (B, m))``: objective and constraint values of a batch of points.
 BatchFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -87,7 +97,7 @@ REASON_PENALTY_LIMIT = 'stopped: constraints violated at the maximum penalty'
 REASON_ITERATION_LIMIT = 'stopped: iteration limit'
 REASON_QP_FAILED = 'stopped: QP solver failed'
 
-#: OSQP statuses whose solution is used as a step (anything else is a failed subproblem).
+#: QP statuses whose solution is used as a step (anything else is a failed subproblem).
 QP_OK_STATUSES = ('solved', 'solved inaccurate')
 
 
@@ -117,6 +127,9 @@ class ScpSettings:
     prox: float = 1e-8
     prox_rel: float = 0.1
     prox_penalty_weight: float = 0.01
+    #: 'active-set' (exact, :mod:`small_qp`, default) or 'osqp' (ADMM, one small OSQP problem per restart)
+    qp_solver: str = 'active-set'
+    qp_max_iter: int = 200  # working-set changes of the active-set solver before it reports a failure
     osqp_eps: float = 1e-6
     osqp_max_iter: int = 20000
     osqp_rho: float = 0.1
@@ -230,12 +243,7 @@ class _BlockQp:
         and must not be used: see :data:`QP_OK_STATUSES`).
         """
         q, low, up = self._vectors(grad, mu, g, lo, hi)
-        jn = np.abs(jac).sum(axis=2)  # (R, m) ‖∇g_i‖₁
-        rad = np.maximum(radius, 1e-12)
-        lin = np.abs(grad).max(axis=1, initial=0.0) + self.prox_mu * mu * jn.max(axis=1, initial=0.0)
-        rho_d = np.maximum(self.prox, self.prox_rel * lin / rad)
-        t_scale = np.maximum(np.maximum(np.abs(g), rad[:, None] * jn).max(axis=1, initial=0.0), 1e-12)
-        rho_t = np.maximum(self.prox, self.prox_rel * mu / t_scale)
+        rho_d, rho_t = _prox_weights(grad, jac, g, mu, radius, self.prox, self.prox_rel, self.prox_mu)
         diag = (self._pi == self._pj)[None, :]
         hp = (hess[:, self._pi, self._pj] if self.quasi_newton else 0.0) + np.where(diag, rho_d[:, None], 0.0)
         px = np.concatenate([hp, np.repeat(rho_t[:, None], self.m, axis=1)], axis=1).ravel()
@@ -253,6 +261,71 @@ class _BlockQp:
                 status = 'non-finite solution'
         lam = np.where(np.isfinite(lam), np.clip(lam, 0.0, mu[:, None]), 0.0)
         return np.clip(d, lo, hi), lam, status
+
+
+def _prox_weights(grad, jac, g, mu, radius, prox: float, prox_rel: float, prox_mu: float):
+    """Proximal weights ρ_d, ρ_t (R,) of the subproblems (see the module docstring)."""
+    jn = np.abs(jac).sum(axis=2)  # (R, m) ‖∇g_i‖₁
+    rad = np.maximum(radius, 1e-12)
+    lin = np.abs(grad).max(axis=1, initial=0.0) + prox_mu * mu * jn.max(axis=1, initial=0.0)
+    rho_d = np.maximum(prox, prox_rel * lin / rad)
+    t_scale = np.maximum(np.maximum(np.abs(g), rad[:, None] * jn).max(axis=1, initial=0.0), 1e-12)
+    rho_t = np.maximum(prox, prox_rel * mu / t_scale)
+    return rho_d, rho_t
+
+
+class _ActiveSetQps:
+    """Every active restart's subproblem solved exactly by :func:`small_qp.trust_region_steps` (one call)."""
+
+    def __init__(self, r: int, n: int, m: int, settings: ScpSettings) -> None:
+        self.r, self.n, self.m = r, n, m
+        self.settings = settings
+
+    def solve(self, active, grad, hess, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """Steps d (R, n), multipliers (R, m), status per restart ('' for inactive restarts)."""
+        st = self.settings
+        rho_d, rho_t = _prox_weights(grad, jac, g, mu, radius, st.prox, st.prox_rel, st.prox_penalty_weight)
+        d = np.empty((self.r, self.n))
+        lam = np.empty((self.r, self.m))
+        codes = np.empty(self.r, dtype=np.int64)
+        f64 = np.float64
+        trust_region_steps(np.ascontiguousarray(active, dtype=np.bool_), np.ascontiguousarray(grad, dtype=f64),
+                           np.ascontiguousarray(hess, dtype=f64), np.ascontiguousarray(jac, dtype=f64),
+                           np.ascontiguousarray(g, dtype=f64), np.ascontiguousarray(mu, dtype=f64),
+                           np.ascontiguousarray(lo, dtype=f64), np.ascontiguousarray(hi, dtype=f64),
+                           np.ascontiguousarray(rho_d, dtype=f64), np.ascontiguousarray(rho_t, dtype=f64),
+                           int(st.qp_max_iter), d, lam, codes)
+        lam = np.clip(lam, 0.0, mu[:, None])
+        return np.clip(d, lo, hi), lam, [STATUS_TEXT[int(c)] for c in codes]
+
+
+class _RestartQps:
+    """One small OSQP problem (a :class:`_BlockQp` with one block) per restart, set up on first use.
+
+    Each restart's subproblem is solved on its own, so OSQP's termination test, its iteration
+    count and a failure concern that restart only (a block-diagonal problem of all restarts runs
+    as many ADMM iterations as its hardest block needs and fails for all of them at once).
+    """
+
+    def __init__(self, r: int, n: int, m: int, settings: ScpSettings) -> None:
+        self.r, self.n, self.m = r, n, m
+        self.settings = settings
+        self.blocks: list[_BlockQp | None] = [None] * r
+
+    def solve(self, active, grad, hess, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """Steps d (R, n), multipliers (R, m) and OSQP status per restart ('' for inactive ones, whose
+        step and multipliers are zero); see :meth:`_BlockQp.solve`."""
+        d = np.zeros((self.r, self.n))
+        lam = np.zeros((self.r, self.m))
+        status = [''] * self.r
+        for i in np.flatnonzero(active):
+            qp = self.blocks[i]
+            if qp is None:
+                qp = self.blocks[i] = _BlockQp(1, self.n, self.m, self.settings)
+            sl = slice(i, i + 1)
+            di, li, status[i] = qp.solve(grad[sl], hess[sl], jac[sl], g[sl], mu[sl], lo[sl], hi[sl], radius[sl])
+            d[i], lam[i] = di[0], li[0]
+        return d, lam, status
 
 
 def _merit(f: np.ndarray, g: np.ndarray, mu: np.ndarray) -> np.ndarray:
@@ -352,7 +425,9 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
     iterations = np.zeros(r, dtype=np.int64)
     converged = np.zeros(r, dtype=bool)
     reason = [''] * r
-    qp = _BlockQp(r, n, m, st)
+    if st.qp_solver not in ('active-set', 'osqp'):
+        raise ValueError(f"qp_solver must be 'active-set' or 'osqp', got {st.qp_solver!r}")
+    qp = _ActiveSetQps(r, n, m, st) if st.qp_solver == 'active-set' else _RestartQps(r, n, m, st)
     qp_solves = 0
     qp_failures = np.zeros(r, dtype=np.int64)
     qp_failed_run = np.zeros(r, dtype=np.int64)  # consecutive failures
@@ -367,26 +442,27 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
         hi = np.where(active[:, None], np.minimum(s[:, None], upper - x), 0.0)
         act = active[:, None]
         t0 = time.perf_counter()
-        d, lam, status = _polled(poll, st.poll_interval, qp.solve, np.where(act, grad, 0.0), hess,
+        d, lam, status = _polled(poll, st.poll_interval, qp.solve, active.copy(), np.where(act, grad, 0.0), hess,
                                  np.where(active[:, None, None], jac, 0.0),
                                  np.where(act, g, -1.0), np.where(active, mu, 1.0), lo, hi, np.where(active, s, 1.0))
         timers['qp'] += time.perf_counter() - t0
         qp_solves += 1
         iterations[active] += 1
-        qp_ok = status in QP_OK_STATUSES
+        solved = active & np.array([st_i in QP_OK_STATUSES for st_i in status], dtype=bool)
+        failed = active & ~solved
         merit = _merit(f, g, mu)
         accept = np.zeros(r, dtype=bool)
         reject = np.zeros(r, dtype=bool)
         small = np.zeros(r, dtype=bool)
         flat = np.zeros(r, dtype=bool)
-        if qp_ok:
-            qp_failed_run[active] = 0
+        if solved.any():
+            qp_failed_run[solved] = 0
             model = (f + np.einsum('rn,rn->r', grad, d) + 0.5 * np.einsum('rn,rnk,rk->r', d, hess, d)
                      + mu * np.maximum(g + np.einsum('rmn,rn->rm', jac, d), 0.0).sum(axis=1))
             predicted = merit - model
             scale = np.maximum(1.0, np.abs(merit))
-            small = active & ~(predicted > st.improve_tol * scale)
-            cand = np.flatnonzero(active & ~small)
+            small = solved & ~(predicted > st.improve_tol * scale)
+            cand = np.flatnonzero(solved & ~small)
             if cand.size:
                 xn = np.clip(x[cand] + d[cand], lower[cand], upper[cand])
                 fn, gn = call(xn)
@@ -418,17 +494,17 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
                     s[reject] = st.trust_shrink * np.minimum(s[reject], np.abs(d[reject]).max(axis=1, initial=0.0))
                 else:
                     s[reject] *= st.trust_shrink
-        else:
+        if failed.any():
             # A failed subproblem says nothing about stationarity: never "converged" from it. Shrink
             # the box (a smaller, better-conditioned QP) and stop after max_qp_failures in a row.
-            qp_failures[active] += 1
-            qp_failed_run[active] += 1
-            for i in np.flatnonzero(active):
-                qp_status[i] = status
-            s[active] *= st.trust_shrink
-            for i in np.flatnonzero(active & (qp_failed_run >= st.max_qp_failures)):
+            qp_failures[failed] += 1
+            qp_failed_run[failed] += 1
+            for i in np.flatnonzero(failed):
+                qp_status[i] = status[i]
+            s[failed] *= st.trust_shrink
+            for i in np.flatnonzero(failed & (qp_failed_run >= st.max_qp_failures)):
                 active[i] = False
-                reason[i] = f'{REASON_QP_FAILED} ({status})'
+                reason[i] = f'{REASON_QP_FAILED} ({status[i]})'
         if record_history:
             history.append(x.copy())
         tiny = reject & (s < st.trust_radius_min)

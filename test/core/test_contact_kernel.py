@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pytest
 
-from gpis_grasp_ros.core.contact_kernel import first_crossing
+from gpis_grasp_ros.core.contact_kernel import first_crossing, lipschitz_bounds
 from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, find_contacts, perturb_grasps
 from gpis_grasp_ros.core.grid import GridGeometry
 
@@ -155,3 +155,38 @@ def test_find_contacts_kernel_matches_the_numpy_reference(seed: int) -> None:
     for name in ('clearance1', 'clearance2'):
         assert np.allclose(getattr(fast, name), getattr(ref, name), atol=1e-7)
     assert np.array_equal(np.isnan(fast.c1), np.isnan(ref.c1))
+
+
+def test_lipschitz_bound_is_tight_and_jumps_find_the_same_crossing() -> None:
+    """The per-grid bound holds for sampled gradients (and is reached), and jumping ahead by f / L
+    (sphere tracing with that bound) finds the same first crossing as the cell-by-cell walk."""
+    rng = np.random.default_rng(3)
+    grids = np.stack([_random_grid(rng, 12, 14) for _ in range(20)])
+    lip = lipschitz_bounds(grids)
+    for k in range(grids.shape[0]):
+        g = grids[k]
+        # gradient of the bilinear interpolant at random points (central differences on the interpolant)
+        pts = rng.uniform([0.01, 0.01], [12.99, 10.99], (400, 2))
+        h = 1e-6
+        gx = [(_reference_value(g, u + h, v) - _reference_value(g, u - h, v)) / (2 * h) for u, v in pts]
+        gy = [(_reference_value(g, u, v + h) - _reference_value(g, u, v - h)) / (2 * h) for u, v in pts]
+        assert np.max(np.hypot(gx, gy)) <= lip[k] * (1 + 1e-6)
+        corners = [np.hypot(g[i, j + 1 - b] - g[i, j - b], g[i + 1 - a, j] - g[i - a, j])
+                   for i in range(1, 11) for j in range(1, 13) for a in (0, 1) for b in (0, 1)]
+        assert max(corners) >= 0.9 * lip[k]  # interior corners reach it unless the maximum is on the border
+    same = 0
+    for _ in range(2000):
+        k = int(rng.integers(grids.shape[0]))
+        g = grids[k] - grids[k].min() * rng.uniform(0, 0.3) + 0.003  # mostly positive: long jumps
+        px, py = rng.uniform(0, 13), rng.uniform(0, 11)
+        theta = rng.uniform(0, 2 * np.pi)
+        ux, uy = math.cos(theta), math.sin(theta)
+        tmax = min((13 - px) / ux if ux > 0 else px / -ux, (11 - py) / uy if uy > 0 else py / -uy)
+        length = 0.99 * tmax
+        walk = first_crossing(g, px, py, ux, uy, length)
+        jump = first_crossing(g, px, py, ux, uy, length, lipschitz_bounds(g[None])[0])
+        assert walk[1] == jump[1]
+        if walk[1]:
+            assert abs(walk[0] - jump[0]) <= 1e-9
+            same += 1
+    assert same > 300

@@ -247,3 +247,30 @@ def test_shape_samples_carry_their_own_centres_of_mass() -> None:
     samples = draw_shape_samples(post, 50, np.random.default_rng(8))
     np.testing.assert_allclose(samples.com, center_of_mass(samples.bank.sdfs, G))
     assert samples.eps.shape == (50, 2, 2)
+
+
+def test_compiled_grasp_quality_equals_the_numpy_closed_form() -> None:
+    """grasp_quality (compiled) == ferrari_canny_l1 (numpy) on random, near-antipodal and degenerate contacts."""
+    from gpis_grasp_ros.core.contacts import Contacts
+
+    rng = np.random.default_rng(5)
+    shape = (400, 9)
+    c1 = rng.normal(0.06, 0.02, shape + (2,))
+    c2 = rng.normal(0.06, 0.02, shape + (2,))
+    line = (c2 - c1) / np.linalg.norm(c2 - c1, axis=-1, keepdims=True)
+    n1 = _rot(-line, rng.normal(0, 0.5, shape))  # around antipodal: about half in force closure
+    n2 = _rot(line, rng.normal(0, 0.5, shape))
+    valid = rng.random(shape) < 0.9
+    n1[0, 0] = np.nan  # non-finite and flat cases
+    c2[1, 1] = c1[1, 1]
+    con = Contacts(c1=c1, c2=c2, n1=n1, n2=n2, valid=valid, no_contact=~valid, start_inside=np.zeros(shape, bool),
+                   opening_exceeded=np.zeros(shape, bool), width=np.zeros(shape), clearance1=np.zeros(shape),
+                   clearance2=np.zeros(shape))
+    com = rng.normal(0.06, 0.01, (shape[0], 1, 2))
+    q = grasp_quality(con, com, GripperParams(friction_coef=GAMMA), 0.03)
+    ref = ferrari_canny_l1(c1, c2, n1, n2, com, GAMMA, 0.03)
+    ref = np.where(valid & np.isfinite(ref), ref, -np.inf)
+    assert 0.2 < np.mean(q > 0) < 0.8
+    np.testing.assert_array_equal(np.isneginf(q), np.isneginf(ref))
+    fin = np.isfinite(ref)
+    np.testing.assert_allclose(q[fin], ref[fin], rtol=0, atol=1e-13)

@@ -1,4 +1,4 @@
-"""Sequential convex programming (ℓ1 penalties, trust region, batched OSQP) on smooth toy problems."""
+"""Sequential convex programming (ℓ1 penalties, trust region, exact active-set or OSQP subproblems) on toy problems."""
 
 from __future__ import annotations
 
@@ -101,14 +101,40 @@ def test_function_called_in_batches() -> None:
     assert calls[0] == 4 and calls[1] == 8  # all starts at once, then all their FD points at once
 
 
-def test_failed_qp_is_never_converged() -> None:
-    """OSQP stopping at its iteration limit is a failed subproblem, not a zero (stationary) step."""
-    res = scp_minimize(rosenbrock, STARTS, ScpSettings(fd_step=1e-6, osqp_max_iter=1, max_qp_failures=3))
+@pytest.mark.parametrize('solver', [dict(qp_solver='osqp', osqp_max_iter=1),
+                                    dict(qp_solver='active-set', qp_max_iter=1)])
+def test_failed_qp_is_never_converged(solver) -> None:
+    """A QP solver stopping at its iteration limit is a failed subproblem, not a zero (stationary) step."""
+    res = scp_minimize(rosenbrock, STARTS, ScpSettings(fd_step=1e-6, max_qp_failures=3, **solver))
     assert not res.converged.any()
     assert all(r.startswith(REASON_QP_FAILED) and 'maximum iterations' in r for r in res.reason)
     assert np.all(res.qp_failures == 3) and all(st == 'maximum iterations reached' for st in res.qp_status)
-    ok = scp_minimize(quadratic, STARTS, ScpSettings(fd_step=1e-6))
+    np.testing.assert_array_equal(res.x, STARTS)  # no step was taken
+    ok = scp_minimize(quadratic, STARTS, ScpSettings(fd_step=1e-6, qp_solver=solver['qp_solver']))
     assert np.all(ok.qp_failures == 0) and ok.qp_status == [''] * len(STARTS)
+
+
+def test_a_failed_qp_concerns_only_its_restart() -> None:
+    """Restarts have separate subproblems: one whose data is not finite fails alone."""
+
+    def nan_near_origin(x: np.ndarray):
+        f, g = quadratic(x)
+        bad = np.linalg.norm(x - STARTS[0], axis=1) < 0.5  # around the first start only
+        return f, np.where(bad[:, None], np.nan, g)
+
+    res = scp_minimize(nan_near_origin, STARTS, ScpSettings(fd_step=1e-6))
+    assert res.qp_failures[0] > 0 and not res.converged[0] and 'non-finite' in res.qp_status[0]
+    assert np.all(res.qp_failures[1:] == 0) and res.converged[1:].all()
+
+
+@pytest.mark.parametrize('quasi_newton', [False, True])
+@pytest.mark.parametrize('problem', [quadratic, circle])
+def test_active_set_and_osqp_subproblems_give_the_same_runs(problem, quasi_newton: bool) -> None:
+    exact = scp_minimize(problem, STARTS, ScpSettings(fd_step=1e-6, quasi_newton=quasi_newton))
+    admm = scp_minimize(problem, STARTS, ScpSettings(fd_step=1e-6, quasi_newton=quasi_newton, qp_solver='osqp',
+                                                     osqp_eps=1e-9))
+    np.testing.assert_allclose(exact.x, admm.x, atol=1e-4)
+    assert exact.converged.all() and admm.converged.all()
 
 
 def test_non_finite_qp_solution_is_a_failure(monkeypatch) -> None:
@@ -121,7 +147,7 @@ def test_non_finite_qp_solution_is_a_failure(monkeypatch) -> None:
         return res
 
     monkeypatch.setattr(scp_module.osqp.OSQP, 'solve', nan_solve)
-    res = scp_minimize(quadratic, STARTS, ScpSettings(fd_step=1e-6))
+    res = scp_minimize(quadratic, STARTS, ScpSettings(fd_step=1e-6, qp_solver='osqp'))
     assert not res.converged.any() and np.all(res.qp_failures > 0)
     assert all('non-finite solution' in r for r in res.reason)
     np.testing.assert_array_equal(res.x, STARTS)  # no step was taken
