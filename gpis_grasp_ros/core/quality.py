@@ -136,18 +136,19 @@ def torque_scale(sdf: np.ndarray, geometry: GridGeometry, com: np.ndarray | None
 
 @njit(cache=True, nogil=True)
 def _quality_kernel(c, n, com, valid, gamma, rho, out):
-    """Compiled :func:`ferrari_canny_l1` for T trials (c, n (T, 2, 2), com (T, 2)); −inf where not
+    """Compiled :func:`ferrari_canny_l1` for T trials (c, n (T, 2, 2), com (T or 1, 2)); −inf where not
     ``valid`` or not finite (the closed form of :func:`hull_ball_radius`, facet by facet)."""
     w = np.empty((4, 3))
     for t in range(c.shape[0]):
+        ci = 0 if com.shape[0] == 1 else t
         if not valid[t]:
             out[t] = -np.inf
             continue
         for k in range(2):
             nx = n[t, k, 0]
             ny = n[t, k, 1]
-            rx = c[t, k, 0] - com[t, 0]
-            ry = c[t, k, 1] - com[t, 1]
+            rx = c[t, k, 0] - com[ci, 0]
+            ry = c[t, k, 1] - com[ci, 1]
             for e in range(2):
                 sg = 1.0 if e == 0 else -1.0
                 fx = -nx + sg * gamma * (-ny)
@@ -192,13 +193,14 @@ def grasp_quality(contacts: Contacts, com: np.ndarray, gripper: GripperParams, r
     """
     lead = contacts.valid.shape
     flat = int(np.prod(lead, dtype=np.int64))
-    c = np.empty((flat, 2, 2))
-    n = np.empty((flat, 2, 2))
-    c[:, 0] = np.broadcast_to(contacts.c1, lead + (2,)).reshape(-1, 2)
-    c[:, 1] = np.broadcast_to(contacts.c2, lead + (2,)).reshape(-1, 2)
-    n[:, 0] = np.broadcast_to(contacts.n1, lead + (2,)).reshape(-1, 2)
-    n[:, 1] = np.broadcast_to(contacts.n2, lead + (2,)).reshape(-1, 2)
-    com_flat = np.ascontiguousarray(np.broadcast_to(np.asarray(com, dtype=np.float64), lead + (2,)).reshape(-1, 2))
+    shape2 = lead + (2,)
+    c = np.stack([np.broadcast_to(contacts.c1, shape2), np.broadcast_to(contacts.c2, shape2)], axis=-2)
+    n = np.stack([np.broadcast_to(contacts.n1, shape2), np.broadcast_to(contacts.n2, shape2)], axis=-2)
+    com = np.asarray(com, dtype=np.float64)
+    com_flat = com.reshape(1, 2) if com.shape == (2,) else np.ascontiguousarray(
+        np.broadcast_to(com, shape2).reshape(-1, 2))
+    c = c.reshape(flat, 2, 2)
+    n = n.reshape(flat, 2, 2)
     out = np.empty(flat)
     _quality_kernel(c, n, com_flat, np.ascontiguousarray(contacts.valid, dtype=np.bool_).reshape(-1),
                     float(gripper.friction_coef), float(rho), out)
