@@ -131,7 +131,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.ndimage import watershed_ift
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.special import ndtr
@@ -620,6 +619,25 @@ def _reconstruct(marker: np.ndarray, mask: np.ndarray) -> np.ndarray:
         out = nxt
 
 
+def _flood(markers: np.ndarray, dist: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Watershed of -``dist`` from ``markers`` inside ``mask`` by flooding: level by level from the highest
+    distance down (half-cell steps), the labelled regions grow (8-neighbour dilations) into the unlabelled
+    mask cells at or above the level, so each cell joins the blob it is deepest in."""
+    out = np.where(mask, markers, 0).astype(np.float32)
+    kernel = np.ones((3, 3), np.uint8)
+    levels = np.unique(np.floor(dist[mask & (markers == 0)] * 2.0) / 2.0)[::-1]
+    for level in levels:
+        allowed = mask & (dist >= level)
+        while True:
+            free = allowed & (out == 0)
+            grown = cv2.dilate(out, kernel)
+            take = free & (grown > 0)
+            if not take.any():
+                break
+            out[take] = grown[take]
+    return out.astype(np.int32)
+
+
 def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, np.ndarray]:
     """Split touching objects in a labelled raster at the necks of their union (distance-transform watershed).
 
@@ -655,13 +673,11 @@ def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, n
     per_comp = np.bincount(owner[1:], minlength=n_f)
     out = labels.astype(np.int32).copy()
     origin = list(origin)
-    cost = (65535 - np.clip(np.round(dist * 16.0), 0, 65534)).astype(np.uint16)
     for comp_id in np.nonzero(per_comp >= 2)[0]:
         if comp_id == 0:
             continue
         comp = lab_f == comp_id
-        mk = np.where(comp & (markers > 0), markers, 0).astype(np.int32)
-        flooded = watershed_ift(np.where(comp, cost, 65535).astype(np.uint16), mk)
+        flooded = _flood(np.where(comp & (markers > 0), markers, 0), dist, comp)
         cells = comp & (labels > 0)
         pairs = np.unique(np.stack([labels[cells], flooded[cells]], axis=1), axis=0)
         seen: set[int] = set()
@@ -713,7 +729,6 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
     sizes = np.bincount(smooth.ravel())
     sizes[0] = 0
     dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
-    cost = (65535 - np.clip(np.round(dist * 16.0), 0, 65534)).astype(np.uint16)
     for lab in range(1, n):
         comp = labels == lab
         regions = np.unique(smooth[comp & seen])
@@ -729,7 +744,7 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
             continue
         n_o, lab_o = cv2.connectedComponents(other.astype(np.uint8), connectivity=8)
         markers = np.where(flat_cells, 1, np.where(lab_o > 0, lab_o + 1, 0)).astype(np.int32)
-        flooded = watershed_ift(np.where(comp, cost, 65535).astype(np.uint16), markers)
+        flooded = _flood(markers, dist, comp)
         for part in range(2, n_o + 1):
             sel = comp & (flooded == part)
             if sel.any():
@@ -845,8 +860,9 @@ def seen_through(raster: _Raster, target: int, foot_xy: np.ndarray, px_labels: n
 
     A clear object lying on the table is seen as an outline - specular edges, depth holes at its ends,
     colour along its rims - around an interior where the sensor returns the table behind it (the paper's
-    "invalid measurements", section VI). In the table raster the target's component is closed with a
-    disc of radius ``close_m`` (gaps in the outline up to ~2 ``close_m``) and its holes are filled. The
+    "invalid measurements", section VI). In the table raster the target's component is dilated with a
+    disc of radius ``close_m`` (gaps in the outline up to ~2 ``close_m`` close), its holes are filled and it
+    is eroded back with the same disc. The
     pixels returned are table-level pixels (``table_level``: valid depth, no depth evidence) not given to
     another object, whose foot lies (a) in a cell of the filled interior that is not in the component, or
     (b) in the component's core (its filled shape eroded by the closing disc: not the outline) with colour
@@ -858,10 +874,11 @@ def seen_through(raster: _Raster, target: int, foot_xy: np.ndarray, px_labels: n
     comp = (raster.labels == target).astype(np.uint8)
     r = max(1, int(round(close_m / raster.res)))
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    closed = cv2.morphologyEx(np.pad(comp, r + 1), cv2.MORPH_CLOSE, disc)[r + 1:-r - 1, r + 1:-r - 1]
-    filled = np.zeros_like(closed)
-    contours, _ = cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    grown = cv2.dilate(np.pad(comp, r + 1), disc)  # gaps in a thin outline up to 2 r close
+    filled = np.zeros_like(grown)
+    contours, _ = cv2.findContours(grown, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    filled = cv2.erode(filled, disc)[r + 1:-r - 1, r + 1:-r - 1] | comp  # back to the outline's extent
     interior = (filled > 0) & (comp == 0)
     core = cv2.erode(filled, disc) > 0
     ix, iy, ok = raster.cell(foot_xy)
@@ -1190,7 +1207,11 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         x0, y0, x1, y1 = params.roi_table
         fx_, fy_ = foot_xy[..., 0], foot_xy[..., 1]
         evidence &= (fx_ >= x0) & (fx_ <= x1) & (fy_ >= y0) & (fy_ <= y1)
-    inlier_xy = foot_xy[inlier]
+    # the table's extent is the hull of the inliers' feet, decided by the rim of the inlier region (the feet of
+    # plane points are a projective image of the pixels: interior pixels are never hull vertices)
+    rim = inlier & ~cv2.erode(inlier.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                              borderValue=0).astype(bool)
+    inlier_xy = foot_xy[rim]
     raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
                                           np.where(p_d > 0.5, height, np.nan))
     target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics)

@@ -2,13 +2,16 @@
 
 Head-camera-like views (44-52 degrees) of transparent objects among others. What these tests hold
 (see README "Perception on a real, tilted camera" for the figures, including the targets missed):
-the table plane and the grid pose, the isolation of the target from its neighbours, the planner
-and gripper simulation on the imported ground truth, and the node's behaviour (grids published in
-the table plane, or a latched reason when the target cannot be isolated).
+the table plane and the grid pose, the isolation of the target from its neighbours (a box split
+from the notebook it touches), the planner and gripper simulation on the imported ground truth, and
+the node's behaviour (grids published in the table plane, or a latched reason when the target
+cannot be isolated). The issue's targets (occupancy IoU >= 0.5, >= 14/20 executions) are not met
+yet, so they are not asserted; the figures asserted are those achieved, with margin.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +83,28 @@ def test_real_bottle_plan_and_simulated_executions():
     assert ev.jaw_clearance_m > 0.005  # no jaw on another object seen on the table
 
 
+def test_real_flower_box_is_split_from_the_notebook_it_touches():
+    """The clear box stands against the notebook, whose evidence reaches the image border: the flat
+    notebook (12-16 mm) and the taller box are split in the table raster, so the box is a target of
+    its own (README: occupancy IoU 0.27, targets missed) while the notebook itself is still refused
+    as cut by the border."""
+    scene = load_bag(FLOWER, frames=1)
+    params = SensingParams(sensor=D400, target='pixel', target_point=TARGETS[FLOWER])
+    result = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, params)
+    u0, v0, u1, v1 = result.bbox_px
+    assert u1 - u0 < 100 and v1 - v0 < 100  # the box (~70 px), not the notebook (~160 px wide, at the border)
+    assert result.objects_seen >= 3 and result.geometry.size_m[0] < 0.2
+    g, tg = result.geometry, scene.true_geometry
+    true_sdf = bilinear(scene.true_sdf.astype(np.float64), tg, tg.from_sensor(g.to_sensor(g.cell_centers()))[0])
+    occupied = result.occupancy >= 0.5
+    assert np.mean(true_sdf[occupied] < 0.03) > 0.6  # the occupied cells lie on or just behind the true box
+    notebook = dataclasses.replace(params, target_point=(80.0, 180.0))
+    with pytest.raises(ValueError, match='border'):
+        segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, notebook)
+    ev = evaluate_bag(FLOWER, TARGETS[FLOWER], trials=20, seed=0)
+    assert ev.occupancy_iou > 0.15 and ev.jaw_clearance_m > 0.005  # no jaw on another object
+
+
 def _cloud(path: Path, stamp_ns: int) -> PointCloud2:
     f = conversions.RclpyFactory()
     scene = load_bag(path, frames=1)
@@ -88,13 +113,13 @@ def _cloud(path: Path, stamp_ns: int) -> PointCloud2:
                                            messages.header(f, stamp_ns, scene.frame_id))
 
 
-def _run_node(path: Path) -> tuple[list, list, SegmentationNode]:
-    """segmentation_node on one bag's cloud with its target pixel; returns the grids and statuses seen."""
+def _run_node(path: Path, target: tuple[float, float] | None = None) -> tuple[list, list, SegmentationNode]:
+    """segmentation_node on one bag's cloud with its (or the given) target pixel; returns the grids and statuses."""
     ros = RosHarness()
     try:
         node, grids, status, pub = segmentation_graph(ros, [
             Parameter('sensor_model', value='realsense_d400'), Parameter('target', value='pixel'),
-            Parameter('target_point', value=list(TARGETS[path]))])
+            Parameter('target_point', value=list(target or TARGETS[path]))])
         pub.publish(_cloud(path, 1))
         assert wait_for(lambda: bool(status), 60.0)
         wait_for(lambda: bool(grids), 1.0)
@@ -115,8 +140,8 @@ def test_segmentation_node_publishes_grids_in_the_tilted_table_plane():
 
 
 def test_segmentation_node_latches_the_reason_when_the_target_cannot_be_isolated():
-    """The clear flower box touches the notebook, whose evidence reaches the image border: nothing is
-    published and the reason is latched on segmentation/status."""
-    grids, status, _ = _run_node(FLOWER)
+    """The notebook reaches the image border: with the target pixel on it nothing is published and the
+    reason is latched on segmentation/status; the node keeps running."""
+    grids, status, _ = _run_node(FLOWER, (80.0, 180.0))
     assert not grids
     assert status[-1].data.startswith('failed:') and 'border' in status[-1].data

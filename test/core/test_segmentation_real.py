@@ -1,0 +1,228 @@
+"""Segmentation pieces made for real captures (issue 12): splitting touching objects, the seen-through
+interior of a transparent target, and the colour model's options (a shadow still is no evidence).
+
+Synthetic rasters with analytic shapes, and the analytic tilted renderer of ``tilted_scene``.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from tilted_scene import Box, TiltedScene
+
+from gpis_grasp_ros.core.sensing import (
+    SensingParams,
+    _colour_model,
+    _Raster,
+    seen_through,
+    segment_frames,
+    split_flat_support,
+    split_touching,
+)
+
+RES = 0.004  # m per raster cell, the scale of the real captures' rasters (2 pixel footprints)
+
+
+def _disc(shape: tuple[int, int], centre: tuple[float, float], radius: float) -> np.ndarray:
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    return (xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 <= radius ** 2
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+@pytest.mark.parametrize('overlap', [1.0, 2.0, 3.0])
+def test_two_touching_discs_are_split_into_two_objects(overlap):
+    """Two discs of radius 12 and 9 cells overlapping by ``overlap`` cells (contact half-width <= 5.3
+    cells: the small disc is >= 3.7 cells deeper than the contact, more than the 2.5-cell neck of 1 cm at
+    4 mm cells) form one component; the split gives two labels, each (nearly) one disc."""
+    a = _disc((60, 80), (25.0, 30.0), 12.0)
+    b = _disc((60, 80), (25.0 + 12.0 + 9.0 - overlap, 30.0), 9.0)
+    _, labels = cv2.connectedComponents((a | b).astype(np.uint8), connectivity=8)
+    assert labels.max() == 1
+    out, origin = split_touching(labels, 0.01 / RES)
+    parts = [out == lab for lab in np.unique(out[out > 0])]
+    assert len(parts) == 2
+    assert sorted(origin[np.unique(out[out > 0])]) == [1, 1]  # both parts remember the component they came from
+    best_a = max(_iou(p, a & ~b) for p in parts)
+    best_b = max(_iou(p, b & ~a) for p in parts)
+    assert best_a > 0.9 and best_b > 0.85
+    assert (out > 0).sum() == (a | b).sum()  # no cell lost
+
+
+def test_discs_overlapping_more_than_the_neck_allows_stay_one_object():
+    """Overlap 5 cells: contact half-width 6.7 cells, the small disc only 2.3 cells deeper (< 2.5): one object."""
+    a = _disc((60, 80), (25.0, 30.0), 12.0)
+    b = _disc((60, 80), (41.0, 30.0), 9.0)
+    _, labels = cv2.connectedComponents((a | b).astype(np.uint8), connectivity=8)
+    assert np.array_equal(split_touching(labels, 0.01 / RES)[0], labels)
+
+
+def test_one_object_with_a_narrow_part_stays_whole():
+    """A bottle lying down (body 40 x 16 cells, neck 8 x 6 cells), a disc, a ring and a thin bar: no split."""
+    shape = (60, 100)
+    bottle = np.zeros(shape, bool)
+    bottle[22:38, 20:60] = True
+    bottle[27:33, 60:68] = True
+    ring = _disc(shape, (85.0, 15.0), 10.0) & ~_disc(shape, (85.0, 15.0), 6.0)
+    disc = _disc(shape, (85.0, 45.0), 10.0)
+    bar = np.zeros(shape, bool)
+    bar[50:53, 5:60] = True
+    n, labels = cv2.connectedComponents((bottle | ring | disc | bar).astype(np.uint8), connectivity=8)
+    out, origin = split_touching(labels, 0.01 / RES)
+    assert np.array_equal(out, labels) and len(origin) == n
+
+
+def test_dumbbell_split_depends_on_how_much_wider_than_the_neck_the_parts_are():
+    """Two discs (radius 10 cells) joined by a bar 2 h wide: split when the discs are wider than the neck by
+    more than the neck parameter (radius), not when the parameter exceeds that difference."""
+    shape = (40, 80)
+    img = _disc(shape, (18.0, 20.0), 10.0) | _disc(shape, (60.0, 20.0), 10.0)
+    img[17:24, 18:60] = True  # neck half-width ~3.5 cells: dynamic ~6.5 cells
+    _, labels = cv2.connectedComponents(img.astype(np.uint8), connectivity=8)
+    assert len(np.unique(split_touching(labels, 4.0)[0])) == 3  # background + two parts
+    assert len(np.unique(split_touching(labels, 8.0)[0])) == 2  # kept whole
+
+
+def test_object_standing_next_to_a_flat_support_is_split_from_it():
+    """A notebook (flat, 12 mm, 1 mm noise) and a taller box (30-70 mm, rough) in contact: two objects.
+    A box's flat top with its walls' feet *below* it, or a flat object alone, is not split."""
+    rng = np.random.default_rng(0)
+    shape = (50, 70)
+    notebook = np.zeros(shape, bool)
+    notebook[5:45, 5:40] = True  # 40 x 35 cells = 224 cm^2
+    box = np.zeros(shape, bool)
+    box[15:30, 40:52] = True  # touches the notebook's edge
+    height = np.full(shape, np.nan)
+    height[notebook] = 0.012 + 0.001 * rng.standard_normal(notebook.sum())
+    height[box] = rng.uniform(0.03, 0.07, box.sum())
+    _, labels = cv2.connectedComponents((notebook | box).astype(np.uint8), connectivity=8)
+    out, origin = split_flat_support(labels, height, RES)
+    labs = np.unique(out[out > 0])
+    assert len(labs) == 2 and set(origin[labs]) == {1}
+    owner_nb = np.bincount(out[notebook]).argmax()
+    owner_box = np.bincount(out[box]).argmax()
+    assert owner_nb != owner_box
+    assert np.mean(out[notebook] == owner_nb) > 0.97 and np.mean(out[box] == owner_box) > 0.9
+
+    # a 40 mm box seen at a tilt: flat top, the feet of its front wall (heights 0-40 mm) in front of it
+    top = np.zeros(shape, bool)
+    top[10:40, 10:50] = True
+    walls = np.zeros(shape, bool)
+    walls[40:43, 10:50] = True
+    h2 = np.full(shape, np.nan)
+    h2[top] = 0.04 + 0.001 * rng.standard_normal(top.sum())
+    h2[walls] = rng.uniform(0.0, 0.04, walls.sum())
+    _, lab2 = cv2.connectedComponents((top | walls).astype(np.uint8), connectivity=8)
+    assert np.array_equal(split_flat_support(lab2, h2, RES)[0], lab2)
+    # a flat object alone
+    _, lab3 = cv2.connectedComponents(notebook.astype(np.uint8), connectivity=8)
+    assert np.array_equal(split_flat_support(lab3, np.where(notebook, height, np.nan), RES)[0], lab3)
+
+
+def _raster_pixels(mask: np.ndarray) -> tuple[_Raster, np.ndarray]:
+    """A raster whose cells are the labels of ``mask`` and one 'pixel' per cell (its foot = the cell centre)."""
+    labels = mask.astype(np.int32)
+    raster = _Raster(np.zeros(2), RES, labels)
+    yy, xx = np.mgrid[:mask.shape[0], :mask.shape[1]]
+    foot = (np.stack([xx, yy], axis=-1) + 0.5) * RES
+    return raster, foot
+
+
+def test_a_ring_of_evidence_gets_its_interior_filled():
+    """A clear object's outline (a ring 2 cells thick with a 3-cell gap) around a see-through interior:
+    the interior's table-level pixels are returned; the table outside is not."""
+    shape = (60, 60)
+    outer, inner = _disc(shape, (30.0, 30.0), 20.0), _disc(shape, (30.0, 30.0), 18.0)
+    ring = outer & ~inner
+    ring[28:31, 47:52] = False  # a 3-cell gap in the outline (closed: 2 x 0.006 m / 4 mm = 3 cells)
+    raster, foot = _raster_pixels(ring)
+    px_labels = ring.astype(np.int64)
+    table_level = ~ring
+    through = seen_through(raster, 1, foot, px_labels, np.zeros(shape, bool), table_level, 0.006)
+    interior = inner & ~ring
+    assert through[interior].mean() > 0.97
+    assert not through[~outer].any() and not through[ring].any()
+    # a pixel of another object inside the ring is not taken; colour-only core pixels only when asked
+    px_labels[30, 30] = 2
+    assert not seen_through(raster, 1, foot, px_labels, np.zeros(shape, bool), table_level, 0.006)[30, 30]
+
+
+def test_open_outline_and_colour_core():
+    """A C-shape whose opening (10 cells) is far wider than the closing disc is not closed: nothing inside is
+    returned. Colour-only pixels in the core of a solid component are returned only when given as colour_only."""
+    shape = (60, 60)
+    outer, inner = _disc(shape, (30.0, 30.0), 20.0), _disc(shape, (30.0, 30.0), 17.0)
+    c_shape = outer & ~inner
+    c_shape[25:36, 40:] = False
+    raster, foot = _raster_pixels(c_shape)
+    through = seen_through(raster, 1, foot, c_shape.astype(np.int64), np.zeros(shape, bool), ~c_shape, 0.006)
+    assert through.sum() < 0.05 * (inner.sum())
+    solid = outer
+    raster, foot = _raster_pixels(solid)
+    colour = solid.copy()
+    none = seen_through(raster, 1, foot, solid.astype(np.int64), np.zeros(shape, bool), solid, 0.006)
+    core = seen_through(raster, 1, foot, solid.astype(np.int64), colour, solid, 0.006)
+    assert not none.any()
+    assert core[_disc(shape, (30.0, 30.0), 17.0)].all() and not core[outer & ~_disc(shape, (30.0, 30.0), 19.5)].any()
+
+
+def test_colour_model_rejects_a_shadow_and_flags_a_clear_object():
+    """Textured table (brightness +-8 %, RGB noise), a shadow at 40 % brightness, a less saturated
+    (clear-object) patch: robust statistics give a threshold that passes the texture and the shadow
+    as table and flags the desaturated patch."""
+    rng = np.random.default_rng(1)
+    t = np.array([52.0, 144.0, 176.0])  # the blue cloth of capture 000000080
+    tex = rng.uniform(0.92, 1.08, (80, 80))[..., None] * t + 3.0 * rng.standard_normal((80, 80, 3))
+    model = _colour_model(tex, np.ones((80, 80), bool), SensingParams())
+    assert np.allclose(model.table_rgb, t, atol=6.0)
+    p_tex, _ = model.evidence(tex)
+    assert np.mean(p_tex > 0.5) < 0.01
+    p_shadow, ratio = model.evidence(0.4 * tex)
+    assert np.mean(p_shadow > 0.5) < 0.01 and np.all(ratio < model.dark_ratio)
+    clear = 0.5 * tex + 0.5 * np.array([170.0, 175.0, 180.0])  # table seen through clear plastic: desaturated
+    p_clear, _ = model.evidence(clear)
+    assert np.mean(p_clear > 0.5) > 0.95
+
+
+def test_shadow_rejected_with_smoothing_and_hole_margin_on():
+    """The options of the colour model (smoothing, hole-margin training) keep a strong shadow out of the
+    colour evidence and out of the uncertain cells."""
+    box = Box(0.0, 0.0, 0.025, 0.02, 0.04)
+    scene = TiltedScene(40.0, boxes=[box], shadows=[(0.025, -0.02, 0.055, 0.02, 0.35)])
+    rgb, depth, _ = scene.frames(3, seed=2)
+    params = SensingParams(color_smooth_px=1.5, color_hole_margin_px=3)
+    result = segment_frames(rgb, depth, scene.intrinsics, params)
+    pts = scene.intrinsics.rays() * np.nanmean(depth, axis=0)[..., None]
+    xy = scene.table_xy(pts)
+    _, _, lab = scene.frames(1)
+    shadow_px = (lab == 0) & (xy[..., 0] > 0.03) & (xy[..., 0] < 0.05) & (np.abs(xy[..., 1]) < 0.015)
+    assert shadow_px.sum() > 150 and not result.rgb_mask[shadow_px].any()
+    g = result.geometry
+    cxy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    shadow_cells = (cxy[..., 0] > 0.03) & (cxy[..., 0] < 0.05) & (np.abs(cxy[..., 1]) < 0.015)
+    assert shadow_cells.sum() >= 5 and not result.uncertain[shadow_cells].any()
+
+
+def test_box_next_to_a_notebook_is_isolated_end_to_end():
+    """Tilted camera (45 degrees): a 5 cm box standing against the edge of a 12 mm notebook. The notebook
+    reaches the image border; the box, picked by a pixel, is its own object and its grid excludes the notebook."""
+    notebook = Box(-0.3, 0.0, 0.3, 0.07, 0.012, rgb=(40.0, 120.0, 160.0))
+    box = Box(0.025, 0.0, 0.025, 0.02, 0.05, rgb=(200.0, 190.0, 60.0))
+    scene = TiltedScene(45.0, boxes=[notebook, box])
+    rgb, depth, label = scene.frames(3, seed=4)
+    uv = scene.intrinsics.project(scene.to_camera(np.array([0.025, 0.0]), 0.05)[None])[0]
+    assert label[int(round(uv[1])), int(round(uv[0]))] == 2
+    assert (label == 1)[:, :3].any() or (label == 1)[:, -3:].any() or (label == 1)[-3:, :].any()
+    params = SensingParams(target='pixel', target_point=(float(uv[0]), float(uv[1])))
+    result = segment_frames(rgb, depth, scene.intrinsics, params)
+    assert result.objects_seen >= 2
+    assert np.mean(label[result.object_mask] == 2) > 0.9  # the target's pixels are the box's
+    g = result.geometry
+    cxy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    occupied = result.occupancy >= 0.5
+    in_box = (np.abs(cxy[..., 0] - 0.025) <= 0.025 + 0.004) & (np.abs(cxy[..., 1]) <= 0.02 + 0.004)
+    assert occupied.sum() >= 10 and np.mean(in_box[occupied]) > 0.9
+    assert g.size_m[0] < 0.12  # a grid around the 5 x 4 cm box, not the notebook
