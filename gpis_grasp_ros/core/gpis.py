@@ -79,7 +79,10 @@ set of training cells with all their gradient components). Choices, each a docum
   mean only over distances beyond ~l, and the shipped transparent knob F (an unobserved 4 x 5-cell
   region) vanished from the mean shape at ML's unbounded l = 9.5 cells. It binds on A and F of
   the 8 shipped bags (ML is interior on the other six). Being relative to E, the bounds do not
-  change with M.
+  change with M. Since the sensing noise map leaves every *unknown* cell untrained and object in the
+  SDF (missing, extended RGB/depth disagreement, no-return pixels split from the target; sensing
+  module, "Unknown cells"), whole unseen parts (A's dispenser arm, F's crystal body, G's bottle)
+  are such regions; the bound still keeps them in the mean shape (after that change it binds on A and E).
 * Thickness bound: l <= ``length_scale_max_thickness`` (3) x r_in as well, r_in the largest
   inscribed radius of the observed object (max of -SDF; missing cells count as object). An SE
   kernel whose l exceeds ~1.5 times the object's width correlates both sides of it with the free
