@@ -745,8 +745,13 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
     smooth = np.where(seen.ravel(), smooth + 1, 0).reshape(ny, nx)
     sizes = np.bincount(smooth.ravel())
     sizes[0] = 0
+    big = np.nonzero(sizes >= min_cells)[0]  # smooth regions large enough to be a support, and their labels
+    region_label = np.zeros(sizes.size, np.int64)
+    region_label[smooth[seen]] = labels[seen]
+    if big.size == 0:
+        return out, np.asarray(origin)
     dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
-    for lab in range(1, n):
+    for lab in np.unique(region_label[big]):
         comp = labels == lab
         regions = np.unique(smooth[comp & seen])
         if regions.size == 0:
