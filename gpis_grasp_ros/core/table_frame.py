@@ -135,15 +135,17 @@ def _refine(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, float]
 
 def fit_table_plane(points: np.ndarray, model: SensorModel, *, band_sigmas: float = 3.0, band_floor_m: float = 0.002,
                     iterations: int = 300, min_iterations: int = 50, max_points: int = 10000,
-                    min_inlier_fraction: float = 0.2, max_tilt_deg: float = 75.0, seed: int = 0) -> TableFrame:
+                    score_points: int = 2000, min_inlier_fraction: float = 0.2, max_tilt_deg: float = 75.0,
+                    seed: int = 0) -> TableFrame:
     """Robust plane fit (MSAC + least squares) to camera-frame points ``(K, 3)`` (m).
 
     The inlier band of a point at depth z is max(band_floor_m, band_sigmas sigma_z(z)) of the
     sensor ``model``; the floor covers real tables that are not flat to the sensor's noise (cloth,
     wood grain) and the model's calibration error. The deterministic (``seed``) sample of at most
     ``max_points`` points is searched with up to ``iterations`` random triples (adaptive stop, see
-    the module docstring); the best (lowest MSAC cost) plane is refined by weighted total least squares on its
-    inliers, three times.
+    the module docstring), each scored on the first ``score_points`` of them (a random subset: the
+    MSAC cost only has to rank the candidates); the best (lowest MSAC cost) plane is refined by weighted
+    total least squares on its inliers among all the sampled points, three times.
 
     Raises:
         ValueError: fewer than 100 points; no plane holds ``min_inlier_fraction`` of the points;
@@ -159,6 +161,8 @@ def fit_table_plane(points: np.ndarray, model: SensorModel, *, band_sigmas: floa
         pts = pts[rng.choice(pts.shape[0], max_points, replace=False)]
     band = np.maximum(band_floor_m, band_sigmas * model.sigma(pts[:, 2]))
     triples = pts[rng.integers(0, pts.shape[0], size=(iterations, 3))]
+    subset = rng.permutation(pts.shape[0])[:score_points]
+    score, score_band = pts[subset], band[subset]
     normals, offsets = _plane_from_three(triples)
     best_cost, best, needed = math.inf, None, iterations
     chunk = 25
@@ -169,13 +173,13 @@ def fit_table_plane(points: np.ndarray, model: SensorModel, *, band_sigmas: floa
         good = np.linalg.norm(nrm, axis=1) > 0
         if not good.any():
             continue
-        resid = pts @ nrm[good].T + off[good][None, :]  # (K, C)
-        cost = np.minimum((resid / band[:, None]) ** 2, 1.0).sum(axis=0)
+        resid = score @ nrm[good].T + off[good][None, :]  # (K, C)
+        cost = np.minimum((resid / score_band[:, None]) ** 2, 1.0).sum(axis=0)
         j = int(np.argmin(cost))
         if cost[j] < best_cost:
             best_cost, best = float(cost[j]), (nrm[good][j], float(off[good][j]))
             # adaptive stop (Fischler and Bolles): enough triples for a 99.9 % chance of an all-inlier one
-            w = float(np.mean(np.abs(resid[:, j]) <= band))
+            w = float(np.mean(np.abs(resid[:, j]) <= score_band))
             needed = max(min_iterations, int(math.ceil(math.log(1e-3) / math.log(max(1e-12, 1.0 - w ** 3)))))
     if best is None:
         raise ValueError('depth points are collinear: cannot estimate the table plane')
