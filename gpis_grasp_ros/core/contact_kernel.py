@@ -70,7 +70,7 @@ def _smallest_root(q0, q1, q2, dd):
 
 
 @njit(cache=True, nogil=True)
-def first_crossing(grid, px, py, ux, uy, length, lipschitz=0.0):
+def first_crossing(grid, px, py, ux, uy, length, lipschitz=0.0, f_start=math.nan):
     """First zero crossing (cells from the start) of the bilinear SDF on the segment from (px, py)
     (padded cell coordinates) along the unit vector (ux, uy) for ``length`` cells.
 
@@ -78,11 +78,12 @@ def first_crossing(grid, px, py, ux, uy, length, lipschitz=0.0):
     the whole padded grid (:func:`lipschitz_bounds`). Where f > 0 there is then no zero within
     f / lipschitz cells, so the walk first jumps ahead in steps of that size (sphere tracing with
     a proven bound, not a heuristic) while they exceed :data:`JUMP_MIN_CELLS`; the crossing found
-    is the same. Returns ``(t, hit)``; ``hit`` is False when f > 0 along the whole segment.
+    is the same. ``f_start`` (optional) is f at the start if the caller has it. Returns
+    ``(t, hit)``; ``hit`` is False when f > 0 along the whole segment.
     """
     t_skip = 0.0
     if lipschitz > 0:
-        f = _bilinear(grid, px, py)
+        f = f_start if f_start == f_start else _bilinear(grid, px, py)
         while f > JUMP_MIN_CELLS * lipschitz:
             t_skip += f / lipschitz
             if t_skip >= length:
@@ -227,11 +228,11 @@ def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad
             clear1 = min(clear1, f1)
             if f0 <= 0 or f1 <= 0:
                 into = True
-            s1, h1 = first_crossing(grid, ox, oy, vx, vy, reach1, lip)
+            s1, h1 = first_crossing(grid, ox, oy, vx, vy, reach1, lip, f0)
             has[0, k] = h1
             has[1, k] = False
             if h1 or reach1 < ln:  # a crossing, or the walk stopped at the window: try from jaw 2
-                s2, h2 = first_crossing(grid, ex, ey, -vx, -vy, reach2, lip)
+                s2, h2 = first_crossing(grid, ex, ey, -vx, -vy, reach2, lip, f1)
                 has[1, k] = h2
                 if h1:
                     t_hit[0, k] = s1

@@ -765,10 +765,6 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
     others through this function's sampled march.
     """
     n_lines = offsets.size
-    perp = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
-    # Line origins (T, L) and samples (T, L, N) in cells.
-    ox = a[:, 0, None] + offsets * perp[:, 0, None]
-    oy = a[:, 1, None] + offsets * perp[:, 1, None]
     # All samples lie in the box spanned by both jaw faces (conservative bound), per trial.
     reach = float(np.abs(offsets).max())
     b = a + length[:, None] * unit
@@ -796,6 +792,10 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
                                    patch_tol, exact=True, compiled=False)
             c[:, rows], no_contact[rows], inside[rows], clear[:, rows] = out
         return c, no_contact, inside, clear
+    perp = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
+    # Line origins (T, L) and samples (T, L, N) in cells.
+    ox = a[:, 0, None] + offsets * perp[:, 0, None]
+    oy = a[:, 1, None] + offsets * perp[:, 1, None]
     if not exact:
         return_vals = _sampled_crossings(bank, ox, oy, unit, length, n_seg, n_steps, idx, on_padded)
     elif on_padded:
