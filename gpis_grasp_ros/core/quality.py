@@ -194,8 +194,11 @@ def grasp_quality(contacts: Contacts, com: np.ndarray, gripper: GripperParams, r
     lead = contacts.valid.shape
     flat = int(np.prod(lead, dtype=np.int64))
     shape2 = lead + (2,)
-    c = np.stack([np.broadcast_to(contacts.c1, shape2), np.broadcast_to(contacts.c2, shape2)], axis=-2)
-    n = np.stack([np.broadcast_to(contacts.n1, shape2), np.broadcast_to(contacts.n2, shape2)], axis=-2)
+    def full(x: np.ndarray) -> np.ndarray:
+        return x if x.shape == shape2 else np.broadcast_to(x, shape2)
+
+    c = np.stack([full(contacts.c1), full(contacts.c2)], axis=-2)
+    n = np.stack([full(contacts.n1), full(contacts.n2)], axis=-2)
     com = np.asarray(com, dtype=np.float64)
     com_flat = com.reshape(1, 2) if com.shape == (2,) else np.ascontiguousarray(
         np.broadcast_to(com, shape2).reshape(-1, 2))
