@@ -79,7 +79,7 @@ def test_real_target_is_isolated_from_its_neighbours(bottle):
 def test_real_bottle_plan_and_simulated_executions():
     ev = evaluate_bag(BOTTLE, TARGETS[BOTTLE], trials=20, seed=0)
     assert ev.trials == 20 and 0 <= ev.successes <= 20
-    assert 0.0 < ev.occupancy_iou <= 1.0
+    assert 0.08 < ev.occupancy_iou <= 1.0  # README: 0.14 (the 0.5 is missed)
     assert ev.jaw_clearance_m > 0.005  # no jaw on another object seen on the table
 
 
