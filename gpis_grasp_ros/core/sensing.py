@@ -543,7 +543,8 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
        object) stay on the table.
     2. **Where the ray enters the object's prism.** The object is taken as a prism of height H whose
        image is the object's pixels (seen above the table, or holes): a table point x is under it when
-       x and the point H above x both project onto object pixels (single-view visual hull). The pixel
+       the vertical segment from x up to H projects onto object pixels (checked at every pixel it
+       spans; a single-view visual hull). The pixel
        is placed at the highest point of its ray segment (H down to the table, ``samples`` heights)
        whose foot is under the prism - the first surface of the prism the ray meets: the top face for
        a hole in the top, the wall for a specular wall facing the camera (not in front of the object),
@@ -592,7 +593,12 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     t = (heights - table.offset_m) / ray_n[:, None]
     on_ray = ray[:, None, :] * t[..., None]  # camera-frame points of the ray at those heights
     foot = on_ray - heights[..., None] * table.n
-    under = on_object(foot) & on_object(foot + top_h[:, None, None] * table.n)
+    # the whole vertical segment 0..H over the foot must be seen as object: checked at every image pixel it spans
+    span = np.linalg.norm(intrinsics.project(foot[:, 0] + top_h[:, None] * table.n) - intrinsics.project(foot[:, 0]),
+                          axis=-1)
+    under = np.ones(foot.shape[:-1], dtype=bool)
+    for fraction in np.linspace(0.0, 1.0, int(np.clip(np.ceil(np.nanmax(span, initial=1.0)) + 1, 2, 64))):
+        under &= on_object(foot + (fraction * top_h)[:, None, None] * table.n)
     first = np.argmax(under, axis=1)
     out[vs, us] = np.where(under.any(axis=1), heights[np.arange(vs.size), first], 0.0)
     return out
@@ -1163,7 +1169,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     valid = ~missing_px
     with np.errstate(invalid='ignore', divide='ignore'):
         z_mean = np.where(valid, np.where(valid_f, depth, 0.0).sum(axis=0) / np.maximum(count, 1), np.nan)
-    rgb_mean = rgb.astype(np.float64).mean(axis=0)
+    rgb_mean = rgb.sum(axis=0, dtype=np.uint32) / float(n_frames)  # exact; no float64 copy of the frames
     n_eff = effective_frame_count(np.where(valid_f, depth, np.nan), params.sensor) if n_frames > 1 else 1.0
     count_eff = count * (n_eff / n_frames)
 
