@@ -530,7 +530,7 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     cm = g.to_metric(c)  # (2, T, 2)
     if use_kernel:
         normals = np.empty((2, t_total, 2))
-        unit_normals(bank.gradient_grids, np.zeros(t_total, dtype=np.intp) if idx is None else idx,
+        unit_normals(bank.gradient_grids, np.zeros(t_total, dtype=np.intp) if idx is None else np.array(idx),
                      np.ascontiguousarray(c), MIN_GRADIENT_NORM, normals)
     else:
         normals = bank.normals_at(cm, None if idx is None else idx[None, :])
@@ -742,7 +742,8 @@ def _kernel_on_padded(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np
     """Contacts (2, T, 2) (cells), no-contact and start-inside flags (T,), clearances (2, T) (m) of
     trials whose face lines all lie on the padded grid, by the compiled kernel."""
     n_t = a.shape[0]
-    index = np.zeros(n_t, dtype=np.intp) if idx is None else np.ascontiguousarray(idx, dtype=np.intp)
+    # a fresh writeable array: a read-only view would compile a second specialisation of the kernel
+    index = np.zeros(n_t, dtype=np.intp) if idx is None else np.array(idx, dtype=np.intp)
     c = np.empty((2, n_t, 2))
     no_contact = np.empty(n_t, dtype=bool)
     inside = np.empty(n_t, dtype=bool)
