@@ -51,7 +51,66 @@ def bag_iou(path: Path) -> tuple[float, float, float, float]:
     return iou(posterior.mean < 0), iou(result.occupancy >= 0.5), height, seconds
 
 
+def hole_errors(letters: str = 'BCDEH') -> None:
+    """Median / 90th percentile (mm) of the distance between where segmentation puts the no-return pixels of each
+    head bag (the orthographic foot of their placed point) and the foot of the surface the simulator's ray hits."""
+    from gpis_grasp_ros.core import sensing
+    from gpis_grasp_ros.sim.objects import head_spec
+    from gpis_grasp_ros.sim.scene import L_SPECULAR, Scene
+
+    place = sensing._missing_height
+    for path in sorted((BAG_DIR / 'head').glob('*.mcap')):
+        if path.name[0] not in letters:
+            continue
+        captured: dict = {}
+
+        def spy(*args, captured=captured, **kwargs):
+            captured['args'], captured['h'] = args, place(*args, **kwargs)
+            return captured['h']
+
+        sensing._missing_height = spy
+        try:
+            segment(load_bag(path))
+        finally:
+            sensing._missing_height = place
+        _, above, missing, rays, table = captured['args'][:5]
+        h = captured['h']
+        sim = Scene(head_spec(path.name[0]))
+        _, depth, is_wall, _ = sim._trace(sim._rays)
+        placed = table.to_table(rays * ((h - table.offset_m) / (rays @ table.n))[..., None] - h[..., None] * table.n)[0]
+        err = np.linalg.norm(placed - table.to_table(rays * depth[..., None])[0], axis=-1) * 1000
+        spec = sim._label == L_SPECULAR
+        kinds = {'specular top': spec & ~is_wall, 'specular wall': spec & is_wall, 'projector shadow': sim._shadow_px}
+        print(path.name[0], '  '.join(f'{k} ({(c & missing).sum()} px): {np.median(err[c & missing]):.1f} / '
+                                      f'{np.percentile(err[c & missing], 90):.1f} mm'
+                                      for k, c in kinds.items() if (c & missing).any()))
+
+
+def timing(repeats: int = 7) -> None:
+    """Best-of-``repeats`` wall time (s) of segmentation per bag (top-down, head) and on a VGA tilted scene."""
+    from tilted_scene import Box, TiltedScene
+
+    def best(scene_args: tuple) -> float:
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            segment(BagScene(*scene_args, frame_id='', stamp_ns=0))
+            times.append(time.perf_counter() - t0)
+        return min(times)
+
+    for folder in (BAG_DIR, BAG_DIR / 'head'):
+        t = [best((s.rgb_frames, s.depth_frames, s.intrinsics)) for s in map(load_bag, sorted(folder.glob('*.mcap')))]
+        print(f'{folder.name}: ' + ' '.join(f'{v * 1000:.0f}' for v in t) + f' ms, mean {np.mean(t) * 1000:.0f} ms')
+    scene = TiltedScene(50.0, boxes=[Box(0.0, 0.0, 0.03, 0.02, 0.04)])
+    rgb, depth, _ = scene.frames(10, seed=1)
+    print(f'VGA 640 x 480, 10 frames, 50 deg: {best((rgb, depth, scene.intrinsics)) * 1000:.0f} ms')
+
+
 def main() -> None:
+    if '--holes' in sys.argv:
+        return hole_errors()
+    if '--timing' in sys.argv:
+        return timing()
     names = sorted(p.name for p in BAG_DIR.glob('*.mcap'))
     print('| object | top-down mean-shape IoU | head | head - top-down | occupancy IoU top-down / head '
           '| object height top-down / head (mm) | segmentation s top-down / head |')
