@@ -34,9 +34,8 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    above the plane (h > -band, below ``max_object_height_m``), over the table's extent (the convex
    hull of the plane's inliers) and inside the region of interest (``roi_px`` pixel box and/or
    ``roi_table`` box in the table frame). Each evidence pixel is projected **orthographically**
-   onto the plane (its foot p - h n; a missing pixel is put on its ray at the mean height of the
-   pixels seen above the table within ``MISSING_HEIGHT_WINDOW_M`` around it, else where the ray
-   meets the plane) and
+   onto the plane (its foot p - h n; a missing pixel next to a seen object is put where its ray
+   enters that object's prism, :func:`_missing_height`, else where the ray meets the plane) and
    rasterised at about two pixel footprints; the raster is closed (3 x 3) and split into 8-connected
    components of the positive (depth or colour) evidence. **Objects in contact are split** there:
    at necks (:func:`split_touching`: h-maxima of the distance transform of the hole-filled
@@ -69,7 +68,8 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    Every pixel is projected orthographically as above and averaged into the cell under its
    foot, weighted by the table area its foot covers (a wall facing a tilted camera projects onto a
    line and gets ~0 weight); cells between the feet of neighbouring pixels take the mean of their
-   observed neighbours; pixels of other objects count as table (occupancy 0: the grid holds the target only)
+   observed neighbours, unless hidden behind an object (:func:`_hidden_cells`); pixels of other
+   objects count as table (occupancy 0: the grid holds the target only)
    and their missing pixels are ignored. A cell that no pixel reaches is sampled at its centre's
    image point if that pixel sees the table there (a grid finer than the pixels); if that pixel
    sees something above the table the cell is **occluded** (hidden behind an object from a
@@ -79,6 +79,9 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    would let the negative prior mean invent object there). A cell is missing when more than
    ``missing_cell_fraction`` of its pixels are the target's missing pixels (excluded from GPIS
    training, ``train_mask``).
+7. **Object height** (``SensingResult.object_height``, :func:`object_height`): the 95th percentile
+   of the heights of the target's pixels seen in depth above the table (m); parts without a depth
+   return (specular, or transparent ones the sensor sees through) are not measured; 0 = unknown.
 
 Noise map. The GP observes the *signed distance*, so the map is the variance (m^2) of each
 cell's SDF value, the sum of these documented terms:
