@@ -592,18 +592,33 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
         v = np.clip(np.nan_to_num(uv[..., 1]), 0, h_img - 1).astype(np.int64)
         return inside & obj[v, u]
 
-    heights = top_h[:, None] * np.linspace(1.0, 0.0, samples)[None, :]  # (n, K), from the top down
-    t = (heights - table.offset_m) / ray_n[:, None]
-    on_ray = ray[:, None, :] * t[..., None]  # camera-frame points of the ray at those heights
-    foot = on_ray - heights[..., None] * table.n
-    # the whole vertical segment 0..H over the foot must be seen as object: checked at every image pixel it spans
-    span = np.linalg.norm(intrinsics.project(foot[:, 0] + top_h[:, None] * table.n) - intrinsics.project(foot[:, 0]),
-                          axis=-1)
-    under = np.ones(foot.shape[:-1], dtype=bool)
-    for fraction in np.linspace(0.0, 1.0, int(np.clip(np.ceil(np.nanmax(span, initial=1.0)) + 1, 2, 64))):
-        under &= on_object(foot + (fraction * top_h)[:, None, None] * table.n)
-    first = np.argmax(under, axis=1)
-    out[vs, us] = np.where(under.any(axis=1), heights[np.arange(vs.size), first], 0.0)
+    # from the top down, the first sample whose foot has its whole vertical segment 0..H seen as object, checked
+    # at every image pixel it spans (the object mask is dilated by one pixel);
+    # pixels are dropped from the search once placed
+    lift = top_h[:, None] * table.n
+    top_foot = ray * ((top_h - table.offset_m) / ray_n)[:, None] - lift
+    span = np.linalg.norm(intrinsics.project(top_foot + lift) - intrinsics.project(top_foot), axis=-1)
+    inner = np.linspace(0.0, 1.0, int(np.clip(np.ceil(np.nanmax(span, initial=1.0)) + 1, 2, 64)))[1:-1]
+    placed = np.zeros(vs.size)
+    todo = np.arange(vs.size)
+    fractions = np.linspace(1.0, 0.0, samples)[:-1]  # the last sample is the table itself (height 0)
+    for block in np.array_split(fractions, max(1, len(fractions) // 6)):
+        h_k = top_h[todo, None] * block[None, :]  # (m, B)
+        foot = ray[todo, None, :] * ((h_k - table.offset_m) / ray_n[todo, None])[..., None] - h_k[..., None] * table.n
+        rows, cols = np.nonzero(on_object(foot) & on_object(foot + lift[todo, None, :]))
+        for f in inner:
+            if rows.size == 0:
+                break
+            keep = on_object(foot[rows, cols] + f * lift[todo[rows]])
+            rows, cols = rows[keep], cols[keep]
+        under = np.zeros(h_k.shape, dtype=bool)
+        under[rows, cols] = True
+        done = under.any(axis=1)
+        placed[todo[done]] = h_k[done, np.argmax(under[done], axis=1)]
+        todo = todo[~done]
+        if todo.size == 0:
+            break
+    out[vs, us] = placed
     return out
 
 
