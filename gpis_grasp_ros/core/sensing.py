@@ -61,7 +61,15 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    evidence only: object in the occupancy, p_c = 1 against table-level depth (uncertain cells, the
    paper's Object A treatment), never observed table. ``transparent_core_occupied`` (off: the
    paper keeps a part seen only in colour out of the mean shape) extends this to the colour-only
-   pixels of the target's core.
+   pixels of the target's core. **A clear body seen through** (``chroma_z_min``, default 1.5; 0 = off):
+   the table seen through clear plastic keeps the table's depth and, mostly, passes the shadow-line
+   colour test, but its *chromaticity* (r, g, b) / (r + g + b) moves off the table's
+   (:func:`chromaticity_distance`: robust sigmas over the plane's inliers, brightness-free, so shadows
+   and highlights of the table's colour do not count). Table-level pixels more than ``chroma_z_min``
+   sigmas off, connected in the image to the target's pixels, in regions holding a 7-pixel disc (a band
+   of mixed pixels along an opaque edge does not), not another object's pixels nor over another
+   object's raster cells, and not reaching the image border, join the target the same way (colour
+   evidence only: uncertain cells, the prior governs) (:func:`chromatic_extension`).
 6. **Grid in the table plane.** The target's footprint bounding box in the table frame plus
    ``margin`` of its larger side on every side gives a square of side S, M x M cells
    (``grid_size``); the grid's pose is the table frame (``GridGeometry.rotation`` = R, ``z`` = d).
@@ -169,6 +177,9 @@ FLAT_STEP_M = 0.004  # neighbouring cells of a flat surface differ by at most th
 FLAT_JUMP_M = 0.01  # ... and something standing on/next to it differs from it by more (m)
 FLAT_MIN_AREA_M2 = 0.002  # a flat support (notebook, plate, tray) covers at least this area (m^2)
 SPLIT_NECK_M = 0.01  # touching objects split where both are wider than their contact by 2 x this (radius, m)
+CHROMA_SMOOTH_PX = 1.5  # Gaussian sigma (px) of the colour image before its chromaticity is taken
+CHROMA_DARK = 20.0  # darker pixels (mean of 0-255 RGB) have no reliable chromaticity
+CHROMA_CORE_PX = 7  # a region seen through a clear body holds a disc this wide (px); an edge band does not
 
 
 @dataclass(frozen=True)
@@ -244,6 +255,8 @@ class SensingParams:
     color_hole_margin_px: int = 0  # table pixels this close to a depth hole do not train the table colour
     transparent_close_m: float = 0.006  # closing radius (m) of the target's outline before its interior is filled
     transparent_core_occupied: bool = False  # colour-only pixels in the target's core count as seen-through object
+    chroma_z_min: float = 1.5  # > 0: grow the target over table-level pixels this many robust sigmas off the
+    #                            table's chromaticity (a clear body seen through; chromatic_extension); 0 = off
     depth_floor_variance: float = 0.02  # trust of the depth mask in the inverse-variance weights
     color_floor_variance: float = 0.05  # trust of the RGB mask (higher = trusted less)
     morph_kernel_px: int = 3  # opening/closing kernel (ellipse) of the mask clean-up, 0 = off
@@ -932,6 +945,87 @@ def seen_through(raster: _Raster, target: int, foot_xy: np.ndarray, px_labels: n
     return ok & free & table_level & (interior[iy, ix] | (core[iy, ix] & colour_only))
 
 
+def chromaticity_distance(rgb: np.ndarray, train: np.ndarray, smooth_px: float = CHROMA_SMOOTH_PX,
+                          dark: float = CHROMA_DARK) -> tuple[np.ndarray, float, float]:
+    """Distance of each pixel's chromaticity from the table's, in robust sigmas of the table's own spread.
+
+    Chromaticity c = (r, g, b) / (r + g + b) of the colour image smoothed with a Gaussian of ``smooth_px``
+    pixels (demosaicing / JPEG noise): it ignores brightness, so a shadow or a highlight *of the table's
+    colour* is at distance ~0, while the table seen *through* clear plastic - desaturated and tinted by the
+    walls' reflections - is not. The table's chromaticity is the median over the training pixels ``train``
+    (plane inliers); D = |c - c_table|, standardised as z = (D - median) / (1.4826 MAD) over the training
+    pixels, so the test adapts to the table's texture (a mottled cloth, wood grain) and to the sensor.
+    Pixels darker than ``dark`` (sum of 0-255 RGB / 3) have no reliable chromaticity: z = 0.
+
+    Returns z (H x W), and the median and MAD scale of D over the training pixels."""
+    img = np.asarray(rgb, dtype=np.float32)
+    if smooth_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), smooth_px, borderType=cv2.BORDER_REPLICATE)
+    total = img.sum(axis=-1)
+    chroma = img / np.maximum(total, 1e-3)[..., None]
+    samples = chroma[train]
+    if samples.shape[0] < 20:
+        return np.zeros(total.shape), 0.0, 1.0
+    dist = np.linalg.norm(chroma - np.median(samples, axis=0), axis=-1)
+    med = float(np.median(dist[train]))
+    scale = max(1e-4, 1.4826 * float(np.median(np.abs(dist[train] - med))))
+    z = np.where(total / 3.0 >= dark, (dist - med) / scale, 0.0)
+    return z.astype(np.float64), med, scale
+
+
+def chromatic_extension(target_px: np.ndarray, candidate: np.ndarray, chroma_z: np.ndarray, z_min: float,
+                        core_px: int = CHROMA_CORE_PX) -> np.ndarray:
+    """Pixels of a clear target seen only as a change of the table's chromaticity, grown from the target.
+
+    A transparent object lying on the table returns the table's depth through its body, and its colour
+    test (:func:`shadow_line_distance`) passes only where it is specular; the body is seen as the table's
+    colour desaturated by the plastic. ``chroma_z`` (:func:`chromaticity_distance`) > ``z_min`` marks such
+    pixels among the ``candidate`` pixels (table-level, not another object's evidence), opened with a 3 x 3
+    disc (isolated texture specks go); the result is the 8-connected regions of them that touch the
+    target's pixels ``target_px`` and hold a disc of ``core_px`` pixels (a band of mixed pixels along an
+    opaque object's seen edge does not). The region is grown in the image from the target, so chromatic
+    pixels elsewhere (texture, other clear objects) never become evidence; other objects' evidence pixels
+    are not candidates, so the growth stops at them. Limits: a clear object standing on a table of its
+    own tint is not seen this way, and the region leaks along chromatic table pixels that touch the body
+    (the base of another clear object seen through, behind it) - the threshold bounds how far."""
+    grow = ((chroma_z > z_min) & candidate & ~target_px).astype(np.uint8)
+    grow = cv2.morphologyEx(grow, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))) > 0
+    if not grow.any():
+        return np.zeros_like(grow)
+    n, lab = cv2.connectedComponents(grow.astype(np.uint8), connectivity=8)
+    touching = cv2.dilate(target_px.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    # a band along the target's seen edge (mixed pixels, a shading rim) has no core: only regions holding a
+    # disc of ``core_px`` pixels are a body seen through
+    core = cv2.erode(grow.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (core_px, core_px)),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    keep = np.zeros(n, dtype=bool)
+    keep[np.unique(lab[touching & grow])] = True
+    has_core = np.zeros(n, dtype=bool)
+    has_core[np.unique(lab[core])] = True
+    keep &= has_core
+    keep[0] = False
+    region = (keep[lab] | target_px).astype(np.uint8)
+    filled = np.zeros_like(region)  # gaps enclosed by the body and the target (a label, a highlight) are body too
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    return (filled > 0) & candidate & ~target_px
+
+
+def _bounded_extension(target_px: np.ndarray, extension: np.ndarray, params: SensingParams) -> np.ndarray:
+    """The chromatic extension, or nothing when it reaches the image (or pixel ROI) border: a region that
+    runs out of the image is not the enclosed body of the target (the table's own colour changing)."""
+    if not extension.any():
+        return extension
+    h, w = extension.shape
+    b = params.border_px
+    u_lo, v_lo, u_hi, v_hi = (0, 0, w - 1, h - 1) if params.roi_px is None else \
+        (max(0, params.roi_px[0]), max(0, params.roi_px[1]), min(w - 1, params.roi_px[2]), min(h - 1, params.roi_px[3]))
+    vs, us = np.nonzero(extension)
+    if us.min() < u_lo + b or vs.min() < v_lo + b or us.max() > u_hi - b or vs.max() > v_hi - b:
+        return np.zeros_like(extension)
+    return extension
+
+
 def minimum_width(xy: np.ndarray) -> float:
     """Smallest extent (m) of points ``(K, 2)`` over all directions (exact: the hull's edge directions)."""
     pts = np.asarray(xy, dtype=np.float64)
@@ -1269,6 +1363,14 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
                            & (np.abs(np.nan_to_num(height)) <= h_thr), params.transparent_close_m)
     # seen through a transparent target: colour/hole evidence only - object in the occupancy, depth and colour
     # disagree (uncertain cells, like the paper's Object A), never observed-depth table
+    if params.chroma_z_min > 0:  # the clear body seen through: a chromatic region grown from the target
+        chroma_z = chromaticity_distance(rgb_mean, inlier)[0]
+        rx, ry, r_ok = raster.cell(foot_xy)  # not over another object's cells in the table plane either
+        under = np.where(r_ok, raster.labels[ry, rx], 0)
+        through |= _bounded_extension(target_px, chromatic_extension(
+            target_px | through, valid & (p_d <= 0.5) & (np.abs(np.nan_to_num(height)) <= h_thr)
+            & ((px_labels == 0) | (px_labels == target)) & ((under == 0) | (under == target)) & r_ok, chroma_z,
+            params.chroma_z_min), params)
     target_px, occ, p_c = target_px | through, np.where(through, 1.0, occ), np.where(through, 1.0, p_c)
     target_xy = foot_xy[target_px]
 

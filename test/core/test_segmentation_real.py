@@ -1,10 +1,13 @@
 """Segmentation pieces made for real captures (issue 12): splitting touching objects, the seen-through
-interior of a transparent target, and the colour model's options (a shadow still is no evidence).
+interior of a transparent target, the chromatic extension of a clear body, and the colour model's options
+(a shadow still is no evidence).
 
 Synthetic rasters with analytic shapes, and the analytic tilted renderer of ``tilted_scene``.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import cv2
 import numpy as np
@@ -15,6 +18,8 @@ from gpis_grasp_ros.core.sensing import (
     SensingParams,
     _colour_model,
     _Raster,
+    chromatic_extension,
+    chromaticity_distance,
     seen_through,
     segment_frames,
     split_flat_support,
@@ -226,3 +231,95 @@ def test_box_next_to_a_notebook_is_isolated_end_to_end():
     in_box = (np.abs(cxy[..., 0] - 0.025) <= 0.025 + 0.004) & (np.abs(cxy[..., 1]) <= 0.02 + 0.004)
     assert occupied.sum() >= 10 and np.mean(in_box[occupied]) > 0.9
     assert g.size_m[0] < 0.12  # a grid around the 5 x 4 cm box, not the notebook
+
+
+def _cloth(shape: tuple[int, int], seed: int) -> np.ndarray:
+    """The blue cloth of capture 000000080: brightness texture +-8 %, RGB noise of 3 units."""
+    rng = np.random.default_rng(seed)
+    t = np.array([52.0, 144.0, 176.0])
+    return rng.uniform(0.92, 1.08, shape)[..., None] * t + 3.0 * rng.standard_normal(shape + (3,))
+
+
+def test_chromaticity_distance_ignores_shadows_and_flags_a_body_seen_through():
+    """On the cloth: a 40 % shadow and a 30 % highlight of the cloth's colour stay at the table's level
+    (brightness is not chromaticity); the cloth seen through clear plastic (half mixed with grey) is far
+    above; pixels too dark for a chromaticity get z = 0."""
+    tex = _cloth((120, 120), 3)
+    img = tex.copy()
+    img[10:50, 10:50] *= 0.4  # shadow
+    img[10:50, 70:110] = np.minimum(img[10:50, 70:110] * 1.3, 255.0)  # highlight of the same colour
+    img[70:110, 10:50] = 0.5 * img[70:110, 10:50] + 0.5 * np.array([170.0, 175.0, 180.0])  # seen through plastic
+    img[70:110, 70:110] = 5.0  # black
+    train = np.zeros((120, 120), bool)
+    train[:, 55:65] = True
+    train[55:65, :] = True
+    z, med, scale = chromaticity_distance(np.clip(img, 0, 255), train)
+    inner = (slice(14, 46), slice(14, 46)), (slice(14, 46), slice(74, 106)), (slice(74, 106), slice(14, 46))
+    for sl in inner[:2]:  # the shadow's chromaticity is noisier (same RGB noise, less light), not shifted
+        assert np.median(z[sl]) < 1.0 and np.percentile(z[sl], 95) < 3.0
+    assert z[inner[2]].min() > 10.0
+    assert np.all(z[74:106, 74:106] == 0.0) and scale > 0
+    # a reddish tint of 15 units is also seen (another hue), whatever its brightness
+    tinted = tex * 0.6 + np.array([15.0, 0.0, 0.0])
+    z2 = chromaticity_distance(np.vstack([tex, tinted]), np.vstack([train, np.zeros_like(train)]))[0]
+    assert np.median(z2[120:]) > 3.0
+
+
+def test_chromatic_extension_grows_only_thick_regions_touching_the_target():
+    """Target = a specular stripe; a thick chromatic body next to it (20 x 70 px, with an enclosed gap) is returned
+    whole; a chromatic patch elsewhere (not touching the target), a 2-pixel band of mixed pixels along the
+    stripe's other side and pixels that are not candidates (another object) are not."""
+    shape = (100, 120)
+    target = np.zeros(shape, bool)
+    target[40:43, 20:90] = True
+    z = np.zeros(shape)
+    body = np.zeros(shape, bool)
+    body[43:63, 20:90] = True  # the body below the stripe
+    z[body] = 5.0
+    z[30:38, 20:90] = 5.0  # beyond a gap: does not touch the target
+    z[38:40, 20:90] = 0.0
+    z[80:95, 100:115] = 5.0  # elsewhere
+    z[38:40, 20:90] = 5.0  # 2-px band above the stripe ...
+    z[30:38, 20:90] = 0.0  # ... with nothing behind it
+    z[50:54, 50:60] = 0.0  # a gap enclosed by the body (a label, a highlight): filled
+    candidate = np.ones(shape, bool)
+    ext = chromatic_extension(target, candidate, z, 1.5)
+    assert ext[body].mean() > 0.99 and ext[50:54, 50:60].all()  # (the 3 x 3 opening rounds two corners)
+    assert not ext[38:40].any() and not ext[80:95, 100:115].any() and not ext[target].any()
+    assert not chromatic_extension(target, candidate, z, 6.0).any()  # under the threshold: nothing
+    # another object's pixels (not candidates) cut the body off the target: the growth stops at them
+    blocked = candidate.copy()
+    blocked[43:47, :] = False
+    assert not chromatic_extension(target, blocked, z, 1.5).any()
+
+
+def test_a_clear_slab_seen_through_is_recovered_and_an_opaque_box_is_not_grown():
+    """Tilted camera (45 degrees), default table: an opaque box is segmented the same with the
+    chromatic extension on and off (its shadow and edges are not a body seen through); a clear slab whose
+    depth is the table's, seen as a desaturated patch with a specular stripe (depth holes) along its middle,
+    is recovered from the stripe to the whole patch (plus the halo of the image smoothing, <= 4 px, and a few
+    texture-noise pixels)."""
+    box = Box(0.0, 0.0, 0.025, 0.02, 0.04, rgb=(200.0, 190.0, 60.0))
+    scene = TiltedScene(45.0, boxes=[box], shadows=[(0.025, -0.02, 0.055, 0.02, 0.4)])
+    rgb, depth, _ = scene.frames(1, seed=5)
+    on = segment_frames(rgb, depth, scene.intrinsics, SensingParams())
+    off = segment_frames(rgb, depth, scene.intrinsics, SensingParams(chroma_z_min=0.0))
+    assert np.array_equal(on.object_mask, off.object_mask) and np.array_equal(on.occupancy, off.occupancy)
+    # the clear slab: table depth everywhere but a stripe of holes; colour desaturated over 50 x 24 mm
+    empty = TiltedScene(45.0, boxes=[])
+    rgb, depth, _ = empty.frames(1, seed=6)
+    rgb, depth = rgb[0].astype(np.float64), depth[0].copy()
+    xy = empty.table_xy(empty.intrinsics.rays() * depth[..., None])
+    slab = (np.abs(xy[..., 0]) < 0.04) & (np.abs(xy[..., 1]) < 0.02)
+    stripe = slab & (np.abs(xy[..., 1]) < 0.004)
+    rgb[slab] = 0.5 * rgb[slab] + 0.5 * np.array([170.0, 175.0, 180.0])
+    depth[stripe] = np.nan
+    v, u = (int(c.mean()) for c in np.nonzero(stripe))
+    params = SensingParams(target='pixel', target_point=(u, v), transparent_close_m=0.001, color_threshold_min=200.0)
+    res_off = segment_frames(rgb.astype(np.uint8), depth, empty.intrinsics,
+                             dataclasses.replace(params, chroma_z_min=0.0))
+    res_on = segment_frames(rgb.astype(np.uint8), depth, empty.intrinsics, params)
+    assert _iou(res_off.object_mask, slab) < 0.4  # the stripe: 8 of the 24 mm
+    halo = cv2.dilate(slab.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0  # the image smoothing's 4-px halo
+    assert res_on.object_mask[slab].mean() > 0.95 and (res_on.object_mask & ~halo).sum() < 0.01 * slab.sum()
+    assert _iou(res_on.object_mask, slab) > 0.6 > _iou(res_off.object_mask, slab)

@@ -5,8 +5,9 @@ Head-camera-like views (44-52 degrees) of transparent objects among others. What
 the table plane and the grid pose, the isolation of the target from its neighbours (a box split
 from the notebook it touches), the planner and gripper simulation on the imported ground truth, and
 the node's behaviour (grids published in the table plane, or a latched reason when the target
-cannot be isolated). The issue's targets (occupancy IoU >= 0.5, >= 14/20 executions) are not met
-yet, so they are not asserted; the figures asserted are those achieved, with margin.
+cannot be isolated). The issue's grasp target (>= 14/20 executions) is not met and the bottle's
+occupancy IoU is at the 0.5 limit, so they are not asserted; the figures asserted are those achieved,
+with margin.
 """
 
 from __future__ import annotations
@@ -65,13 +66,15 @@ def test_real_table_plane_and_grid_pose(bottle):
 
 def test_real_target_is_isolated_from_its_neighbours(bottle):
     """Five objects on the cloth: the target's grid holds the lying bottle only - every occupied cell is on
-    the true bottle (none on the upright bottles next to it). Only part of the clear bottle is seen."""
+    the true bottle (none on the upright bottles next to it, although the chromatic extension of its body
+    touches the base of the one behind it). About half of the clear bottle's footprint is occupied (122 of
+    the grid's 245 true cells; 63 without the chromatic extension)."""
     scene, result = bottle
     assert result.objects_seen >= 3
     g, tg = result.geometry, scene.true_geometry
     true_sdf = bilinear(scene.true_sdf.astype(np.float64), tg, tg.from_sensor(g.to_sensor(g.cell_centers()))[0])
     occupied = result.occupancy >= 0.5
-    assert occupied.sum() >= 20
+    assert occupied.sum() >= 90
     assert np.mean(true_sdf[occupied] < 0) > 0.95
     assert g.size_m[0] < 0.25  # a grid around one bottle, not around the scene
 
@@ -79,7 +82,8 @@ def test_real_target_is_isolated_from_its_neighbours(bottle):
 def test_real_bottle_plan_and_simulated_executions():
     ev = evaluate_bag(BOTTLE, TARGETS[BOTTLE], trials=20, seed=0)
     assert ev.trials == 20 and 0 <= ev.successes <= 20
-    assert 0.08 < ev.occupancy_iou <= 1.0  # README: 0.14 (the issue's 0.5 is missed)
+    assert 0.4 < ev.occupancy_iou <= 1.0  # README: 0.50 (0.14 without the chromatic extension of the body)
+    assert ev.mean_shape_iou > 0.4  # README: 0.59 (0.09 without)
     assert ev.jaw_clearance_m > 0.005  # no jaw on another object seen on the table
 
 
