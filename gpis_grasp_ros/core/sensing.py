@@ -62,7 +62,8 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    paper's Object A treatment), never observed table. ``transparent_core_occupied`` (off: the
    paper keeps a part seen only in colour out of the mean shape) extends this to the colour-only
    pixels of the target's core. **A clear body seen through** (``chroma_z_min``, default 1.5; 0 = off):
-   the table seen through clear plastic keeps the table's depth and, mostly, passes the shadow-line
+   for a target with fewer than half of its pixels seen in depth (a clear object, seen through holes and
+   specular edges), the table seen through clear plastic keeps the table's depth and, mostly, passes the shadow-line
    colour test, but its *chromaticity* (r, g, b) / (r + g + b) moves off the table's
    (:func:`chromaticity_distance`: robust sigmas over the plane's inliers, brightness-free, so shadows
    and highlights of the table's colour do not count). Table-level pixels more than ``chroma_z_min``
@@ -179,6 +180,8 @@ FLAT_MIN_AREA_M2 = 0.002  # a flat support (notebook, plate, tray) covers at lea
 SPLIT_NECK_M = 0.01  # touching objects split where both are wider than their contact by 2 x this (radius, m)
 CHROMA_SMOOTH_PX = 1.5  # Gaussian sigma (px) of the colour image before its chromaticity is taken
 CHROMA_DARK = 20.0  # darker pixels (mean of 0-255 RGB) have no reliable chromaticity
+CHROMA_MIN_SIGMA = 0.006  # floor of the table's chromaticity spread (a noiseless table would flag every halo)
+CHROMA_CLEAR_FRACTION = 0.5  # a target with fewer of its pixels seen in depth is clear: its body is grown
 CHROMA_CORE_PX = 7  # a region seen through a clear body holds a disc this wide (px); an edge band does not
 
 
@@ -333,7 +336,7 @@ class SensingResult:
     valid_count: np.ndarray  # (H, W) int, valid returns per pixel
     height: np.ndarray  # (H, W) m above the table along its normal, NaN where missing
     depth_mask: np.ndarray  # (H, W) bool
-    rgb_mask: np.ndarray  # (H, W) bool
+    rgb_mask: np.ndarray  # (H, W) bool, the colour test (seen-through pixels added to the target not included)
     missing_mask: np.ndarray  # (H, W) bool
     object_mask: np.ndarray  # (H, W) bool, the target's evidence pixels
     labels_px: np.ndarray  # (H, W) int, component of each evidence pixel (0 = none)
@@ -954,7 +957,9 @@ def chromaticity_distance(rgb: np.ndarray, train: np.ndarray, smooth_px: float =
     colour* is at distance ~0, while the table seen *through* clear plastic - desaturated and tinted by the
     walls' reflections - is not. The table's chromaticity is the median over the training pixels ``train``
     (plane inliers); D = |c - c_table|, standardised as z = (D - median) / (1.4826 MAD) over the training
-    pixels, so the test adapts to the table's texture (a mottled cloth, wood grain) and to the sensor.
+    pixels (at least ``CHROMA_MIN_SIGMA``: the smoothing halo of a coloured object on a noiseless table is
+    not a body), so the test adapts to the table's texture (a mottled cloth, wood grain) and to the sensor; the
+    spread grows as 1 / sqrt(brightness) for pixels darker than the table (the chromaticity noise of a shadow).
     Pixels darker than ``dark`` (sum of 0-255 RGB / 3) have no reliable chromaticity: z = 0.
 
     Returns z (H x W), and the median and MAD scale of D over the training pixels."""
@@ -968,8 +973,11 @@ def chromaticity_distance(rgb: np.ndarray, train: np.ndarray, smooth_px: float =
         return np.zeros(total.shape), 0.0, 1.0
     dist = np.linalg.norm(chroma - np.median(samples, axis=0), axis=-1)
     med = float(np.median(dist[train]))
-    scale = max(1e-4, 1.4826 * float(np.median(np.abs(dist[train] - med))))
-    z = np.where(total / 3.0 >= dark, (dist - med) / scale, 0.0)
+    scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(np.median(np.abs(dist[train] - med))))
+    # the chromaticity of a darker pixel is noisier (shot noise over less light): its spread is the table's
+    # times sqrt(table brightness / pixel brightness), so a shadow is not flagged by its noise
+    spread = scale * np.sqrt(np.maximum(1.0, float(np.median(total[train])) / np.maximum(total, 1e-3)))
+    z = np.where(total / 3.0 >= dark, (dist - med) / spread, 0.0)
     return z.astype(np.float64), med, scale
 
 
@@ -1363,7 +1371,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
                            & (np.abs(np.nan_to_num(height)) <= h_thr), params.transparent_close_m)
     # seen through a transparent target: colour/hole evidence only - object in the occupancy, depth and colour
     # disagree (uncertain cells, like the paper's Object A), never observed-depth table
-    if params.chroma_z_min > 0:  # the clear body seen through: a chromatic region grown from the target
+    if params.chroma_z_min > 0 and np.mean(p_d[target_px] > 0.5) < CHROMA_CLEAR_FRACTION:  # a clear target's body
         chroma_z = chromaticity_distance(rgb_mean, inlier)[0]
         rx, ry, r_ok = raster.cell(foot_xy)  # not over another object's cells in the table plane either
         under = np.where(r_ok, raster.labels[ry, rx], 0)
@@ -1371,6 +1379,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
             target_px | through, valid & (p_d <= 0.5) & (np.abs(np.nan_to_num(height)) <= h_thr)
             & ((px_labels == 0) | (px_labels == target)) & ((under == 0) | (under == target)) & r_ok, chroma_z,
             params.chroma_z_min), params)
+    rgb_test = p_c > 0.5  # the colour test itself (published as rgb_mask), before the seen-through pixels
     target_px, occ, p_c = target_px | through, np.where(through, 1.0, occ), np.where(through, 1.0, p_c)
     target_xy = foot_xy[target_px]
 
@@ -1471,7 +1480,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         train_mask=train_mask, observed=observed, occluded=occluded, uncertain=uncertain, disagreement=disagreement,
         table=table, table_color=table_rgb, color_threshold=c_thr, height_threshold=h_thr, effective_frames=n_eff,
         objects_seen=objects_seen, mean_depth=z_mean, valid_count=count.astype(np.int64), height=height,
-        depth_mask=p_d > 0.5, rgb_mask=p_c > 0.5, missing_mask=missing_px, object_mask=target_px,
+        depth_mask=p_d > 0.5, rgb_mask=rgb_test, missing_mask=missing_px, object_mask=target_px,
         labels_px=px_labels, occupancy_px=occ, noise_px=noise_px, disagreement_px=rho,
         bbox_px=(int(us.min()), int(vs.min()), int(us.max()), int(vs.max())), intrinsics=intrinsics,
         object_height=object_height(height, target_px & valid & (p_d > 0.5)))
