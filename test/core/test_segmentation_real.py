@@ -16,6 +16,7 @@ from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.sensing import (
     SensingParams,
+    _bounded_extension,
     _colour_model,
     _Raster,
     chromatic_extension,
@@ -323,3 +324,19 @@ def test_a_clear_slab_seen_through_is_recovered_and_an_opaque_box_is_not_grown()
     halo = cv2.dilate(slab.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0  # the image smoothing's 4-px halo
     assert res_on.object_mask[slab].mean() > 0.95 and (res_on.object_mask & ~halo).sum() < 0.01 * slab.sum()
     assert _iou(res_on.object_mask, slab) > 0.6 > _iou(res_off.object_mask, slab)
+
+
+def test_an_extension_running_out_of_the_image_is_dropped():
+    """A chromatic region that reaches the image (or pixel ROI) border is the table's colour changing, not the
+    enclosed body of the target: nothing is added; one inside the image is kept whole."""
+    target = np.zeros((60, 80), bool)
+    target[28:31, 20:40] = True
+    inside = np.zeros_like(target)
+    inside[31:45, 20:40] = True
+    out = inside.copy()
+    out[31:60, 20:40] = True  # down to the last row
+    params = SensingParams()
+    assert np.array_equal(_bounded_extension(target, inside, params), inside)
+    assert not _bounded_extension(target, out, params).any()
+    roi = dataclasses.replace(params, roi_px=(0, 0, 79, 42))  # the ROI's lower edge cuts the inside region
+    assert not _bounded_extension(target, inside, roi).any()
