@@ -210,7 +210,8 @@ class GpisNode(GuardedNode):
 
     def fit(self, occ: np.ndarray, noise: np.ndarray, geometry, params: gpis.GpisParams | None = None
             ) -> gpis.GpisPosterior:
-        """Occupancy (0..100, -1 = missing) and noise (m^2, NaN = untrained) → GPIS posterior."""
+        """Occupancy (0..100; -1 = unknown: missing or uncertain, not trained, object in the SDF) and noise
+        (m^2, NaN = untrained) → GPIS posterior."""
         return pipeline.posterior_from_grids(occ, noise, geometry, params or self.config.params)
 
     def _publish(self, posterior: gpis.GpisPosterior, header, config: GpisNodeConfig) -> None:
