@@ -31,3 +31,37 @@ def test_default_yaml_matches_declared_parameters():
         for name, default, description in rows:
             assert values[name] == default, f'{node}.{name}'
             assert description, f'{node}.{name} has no description'
+
+
+def test_gpis_settings_are_node_parameters():
+    """The GPIS settings a user tunes for their objects are gpis_node parameters, set at run time
+    (`ros2 param set`), mapped onto GpisParams (0 = off where documented) and range-checked."""
+    from rclpy.parameter import Parameter
+
+    from gpis_grasp_ros.core import gpis
+    from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
+
+    context = Context()
+    rclpy.init(context=context)
+    node = GpisNode(context=context)
+    try:
+        d = gpis.GpisParams()
+        p = node.params
+        assert (p.gradient_observations, p.gradient_noise_variance, p.search_band_cells, p.length_scale_min_cells,
+                p.length_scale_max_extent, p.length_scale_max_thickness) == \
+            (d.gradient_observations, d.gradient_noise_variance, d.search_band_cells, d.length_scale_min_cells,
+             d.length_scale_max_extent, d.length_scale_max_thickness)
+        ok = node.set_parameters([Parameter('gradient_observations', value=False),
+                                  Parameter('length_scale_max_thickness', value=0.0),
+                                  Parameter('search_band_cells', value=0.0),
+                                  Parameter('length_scale_max_extent', value=0.25)])[0]
+        assert ok.successful, ok.reason
+        p = node.params
+        assert p.gradient_observations is False and p.length_scale_max_thickness is None
+        assert p.search_band_cells is None and p.length_scale_max_extent == 0.25
+        bad = node.set_parameters([Parameter('length_scale_min_cells', value=0.0)])[0]
+        assert not bad.successful
+        assert node.params.length_scale_min_cells == d.length_scale_min_cells
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)

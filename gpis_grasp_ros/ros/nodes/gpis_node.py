@@ -62,7 +62,13 @@ def build_config(v: dict[str, Any]) -> GpisNodeConfig:
     params = gpis.GpisParams(prior_mean=float(v['prior_mean']),
                              optimize_hyperparameters=bool(v['optimize_hyperparameters']),
                              signal_variance=float(v['signal_variance']) or None,
-                             length_scale=float(v['length_scale']) or None)
+                             length_scale=float(v['length_scale']) or None,
+                             gradient_observations=bool(v['gradient_observations']),
+                             gradient_noise_variance=float(v['gradient_noise_variance']),
+                             search_band_cells=float(v['search_band_cells']) or None,
+                             length_scale_min_cells=float(v['length_scale_min_cells']),
+                             length_scale_max_extent=float(v['length_scale_max_extent']),
+                             length_scale_max_thickness=float(v['length_scale_max_thickness']) or None)
     limits = validation.Limits(max_grid_cells=int(v['max_grid_cells']), min_resolution=float(v['min_resolution']),
                                max_resolution=float(v['max_resolution']))
     return GpisNodeConfig(params=params, blur_samples=int(v['blur_samples']), blur_upsample=int(v['blur_upsample']),
@@ -99,6 +105,21 @@ class GpisNode(GuardedNode):
                 'kernel scale C (m^2) used when not optimising (0 = data-driven default)', low=0.0, high=1.0)
         declare(self, 'length_scale', float(d.length_scale or 0.0),
                 'kernel bandwidth l (m) used when not optimising (0 = data-driven default)', low=0.0, high=10.0)
+        declare(self, 'gradient_observations', bool(d.gradient_observations),
+                'also train on the SDF gradient (derivative observations, paper section III)')
+        declare(self, 'gradient_noise_variance', float(d.gradient_noise_variance),
+                'noise variance g0 of one central-difference SDF gradient component (dimensionless)',
+                low=0.0, high=10.0)
+        declare(self, 'search_band_cells', float(d.search_band_cells or 0.0),
+                'hyperparameter search on training cells with |SDF| <= this many cells (0 = all cells)',
+                low=0.0, high=1000.0)
+        declare(self, 'length_scale_min_cells', float(d.length_scale_min_cells),
+                'lower bound of the ML length scale l (grid cells)', low=0.1, high=100.0)
+        declare(self, 'length_scale_max_extent', float(d.length_scale_max_extent),
+                'upper bound of l as a fraction of the grid extent', low=0.01, high=10.0)
+        declare(self, 'length_scale_max_thickness', float(d.length_scale_max_thickness or 0.0),
+                'upper bound of l as a multiple of the object\'s largest inscribed radius (0 = no bound)',
+                low=0.0, high=100.0)
         declare(self, 'blur_samples', 1000, 'GPIS-Blur: number of shape samples (paper: 1000)', low=1, high=100000)
         declare(self, 'blur_upsample', 8, 'GPIS-Blur: image pixels per grid cell', low=1, high=64)
         declare(self, 'stamp_tolerance', 0.0,
