@@ -65,3 +65,27 @@ def test_gpis_settings_are_node_parameters():
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_perception_model_switches_are_segmentation_parameters():
+    """The clear-body extension and the unknown-cell model are segmentation_node parameters mapped onto
+    SensingParams at run time; out-of-range values are refused and leave the settings unchanged."""
+    from rclpy.parameter import Parameter
+
+    from gpis_grasp_ros.core import sensing
+    from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
+
+    context = Context()
+    rclpy.init(context=context)
+    node = SegmentationNode(context=context)
+    try:
+        d = sensing.SensingParams()
+        assert (node.params.chroma_z_min, node.params.exclude_uncertain) == (d.chroma_z_min, d.exclude_uncertain)
+        ok = node.set_parameters([Parameter('chroma_z_min', value=0.0), Parameter('exclude_uncertain', value=False)])[0]
+        assert ok.successful, ok.reason
+        assert (node.params.chroma_z_min, node.params.exclude_uncertain) == (0.0, False)
+        assert not node.set_parameters([Parameter('chroma_z_min', value=-1.0)])[0].successful
+        assert node.params.chroma_z_min == 0.0
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)

@@ -169,6 +169,15 @@ class SegmentationNode(GuardedNode):
                                     'RGB mask: minimum distance from the table colour\'s shadow line (0-255 units); '
                                     '0 = adaptive to the table texture seen on the fitted plane',
                                     low=0.0, high=442.0),
+            chroma_z_min=declare(self, 'chroma_z_min', float(defaults.chroma_z_min),
+                                 'clear targets: grow the target over table-level pixels this many robust sigmas '
+                                 'off the table\'s chromaticity, as colour-only evidence (0 = off)',
+                                 low=0.0, high=100.0),
+            exclude_uncertain=declare(self, 'exclude_uncertain', bool(defaults.exclude_uncertain),
+                                      'unknown cells (no depth return, depth and colour disagreeing over a region, '
+                                      'foreign no-return pixels) are not GPIS training points and count as object '
+                                      '(the prior governs them); false: the previous model, only missing cells '
+                                      'untrained, disagreeing cells trained and free'),
             **perception_parameters(self, defaults),
         )
         declare(self, 'min_frames', 3, 'fewest frames of a burst that make an estimate when the burst ends '
@@ -226,7 +235,8 @@ class SegmentationNode(GuardedNode):
                          roi_table=_optional_box(v['roi_table'], 'roi_table'), target=target,
                          target_point=(tuple(float(x) for x in v['target_point'])
                                        if target in ('pixel', 'table') else None),
-                         max_opening_m=float(v['max_opening']), max_tilt_deg=float(v['max_tilt_deg']))
+                         max_opening_m=float(v['max_opening']), max_tilt_deg=float(v['max_tilt_deg']),
+                         chroma_z_min=float(v['chroma_z_min']), exclude_uncertain=bool(v['exclude_uncertain']))
         if target_needs_point(target) and len(v['target_point']) != 2:
             raise ValueError(f"target '{target}' needs target_point with 2 numbers")
         # min_frames above frames_to_average means: only complete bursts make an estimate
