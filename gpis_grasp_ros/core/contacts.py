@@ -785,13 +785,22 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
         for rows, kernel in ((np.flatnonzero(on_t), True), (np.flatnonzero(~on_t), False)):
             if rows.size == 0:
                 continue
-            sub_idx = None if idx is None else idx[rows]
             if kernel:
+                sub_idx = None if idx is None else idx[rows]
                 out = _kernel_on_padded(bank, a[rows], unit[rows], length[rows], offsets, sub_idx, patch_tol)
-            else:  # leaves the padded grid: the reference path (it marches those lines every OFF_GRID_STEP_CELLS)
-                out = _march_chunk(bank, a[rows], unit[rows], length[rows], n_seg[rows], offsets, n_steps, sub_idx,
+                c[:, rows], no_contact[rows], inside[rows], clear[:, rows] = out
+                continue
+            # Leaves the padded grid: the reference path, which marches those lines every OFF_GRID_STEP_CELLS.
+            # The kernel's chunks are large (it needs no temporaries); the march's (trials, lines, samples)
+            # arrays are bounded by MAX_POINTS_PER_CHUNK as in the numpy path, else memory traffic dominates.
+            steps = int(np.ceil(float(length[rows].max()) / OFF_GRID_STEP_CELLS)) + 2
+            per = max(1, MAX_POINTS_PER_CHUNK // (n_lines * steps))
+            for s0 in range(0, rows.size, per):
+                sub = rows[s0:s0 + per]
+                sub_idx = None if idx is None else idx[sub]
+                out = _march_chunk(bank, a[sub], unit[sub], length[sub], n_seg[sub], offsets, n_steps, sub_idx,
                                    patch_tol, exact=True, compiled=False)
-            c[:, rows], no_contact[rows], inside[rows], clear[:, rows] = out
+                c[:, sub], no_contact[sub], inside[sub], clear[:, sub] = out
         return c, no_contact, inside, clear
     perp = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
     # Line origins (T, L) and samples (T, L, N) in cells.
