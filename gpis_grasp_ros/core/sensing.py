@@ -182,6 +182,9 @@ CHROMA_SMOOTH_PX = 1.5  # Gaussian sigma (px) of the colour image before its chr
 CHROMA_DARK = 20.0  # darker pixels (mean of 0-255 RGB) have no reliable chromaticity
 CHROMA_MIN_SIGMA = 0.006  # floor of the table's chromaticity spread (a noiseless table would flag every halo)
 CHROMA_CLEAR_FRACTION = 0.5  # a target with fewer of its pixels seen in depth is clear: its body is grown
+CLEAR_BODY_FRACTION = 0.25  # a target with fewer of its pixels seen in depth is a clear body (prism footprint)
+PRISM_STEP_M = 0.003  # height step (m) of the visual-hull test of a clear body's prism
+PRISM_RASTER_M = 0.002  # raster (m) on which a clear body's height is found
 CHROMA_CORE_PX = 7  # a region seen through a clear body holds a disc this wide (px); an edge band does not
 
 
@@ -258,6 +261,10 @@ class SensingParams:
     color_hole_margin_px: int = 0  # table pixels this close to a depth hole do not train the table colour
     transparent_close_m: float = 0.006  # closing radius (m) of the target's outline before its interior is filled
     transparent_core_occupied: bool = False  # colour-only pixels in the target's core count as seen-through object
+    train_clear_body: bool = True  # a clear body's prism cells are trained as object (SDF variance
+    #                                disagreement_variance_m2), not unknown
+    clear_body_prism: bool = True  # a clear target (mostly no depth on it): its footprint is the prism under its
+    #                               silhouette, of the height at which it is as narrow as high (clear_body_height)
     chroma_z_min: float = 1.5  # > 0: grow the target over table-level pixels this many robust sigmas off the
     #                            table's chromaticity (a clear body seen through; chromatic_extension); 0 = off
     depth_floor_variance: float = 0.02  # trust of the depth mask in the inverse-variance weights
@@ -1050,6 +1057,98 @@ def minimum_width(xy: np.ndarray) -> float:
     return float(extent.min())
 
 
+def prism_footprint(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,
+                    height_m: float, step_m: float = PRISM_STEP_M) -> np.ndarray:
+    """Table points (``cells_xy`` (..., 2), table frame, m) under a prism of height ``height_m`` whose image is
+    ``silhouette`` (H x W bool): the single-view visual hull of a prism standing on the table.
+
+    A point x is under it when the vertical segment from x up to ``height_m`` projects onto silhouette pixels
+    at every ``step_m`` of height (the silhouette dilated by one pixel for the rounding). Seen by a camera
+    tilted by theta, the silhouette's table points are the footprint swept H tan(theta) away from the camera;
+    this undoes the sweep. ``height_m`` = 0 gives the silhouette's own table points."""
+    sil = cv2.dilate(np.asarray(silhouette, dtype=np.uint8), np.ones((3, 3), np.uint8)) > 0
+    h_img, w_img = sil.shape
+    xy = np.asarray(cells_xy, dtype=np.float64)
+    under = np.ones(xy.shape[:-1], dtype=bool)
+    for h in np.linspace(0.0, max(height_m, 0.0), max(2, int(math.ceil(height_m / step_m)) + 1)):
+        pts = table.to_camera(xy, h)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            uv = np.round(intrinsics.project(pts))
+        inside = (pts[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w_img) & (uv[..., 1] >= 0) & (uv[..., 1] < h_img)
+        u = np.clip(np.nan_to_num(uv[..., 0]), 0, w_img - 1).astype(np.int64)
+        v = np.clip(np.nan_to_num(uv[..., 1]), 0, h_img - 1).astype(np.int64)
+        under &= inside & sil[v, u]
+    return under
+
+
+def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,
+                      res_m: float = PRISM_RASTER_M, iterations: int = 12) -> tuple[float, np.ndarray]:
+    """Height (m) of a clear body seen only as a silhouette (no depth on it): the prism height H at which the
+    footprint under it (:func:`prism_footprint`) is as narrow as H is high.
+
+    Without depth, a single view fixes the footprint only given H (the silhouette's table points are the
+    footprint swept H tan(theta) away from the camera). The prior: a body lying on the table - a bottle on
+    its side, a box on its face - is about as high as its footprint's smallest width. The footprint's width
+    falls as H grows, so the fixed point is found by bisection on a ``res_m`` raster. An upright body (higher
+    than wide) gets too small an H: its footprint is then too long away from the camera (more object, not
+    less). Returns H and the footprint's raster cell centres (K, 2) in the table frame (m); (0, the
+    silhouette's table points) when it has fewer than 3 of them."""
+    hit, ok = table.ray_intersection(intrinsics.rays()[np.asarray(silhouette, dtype=bool)])
+    if ok.sum() < 3:
+        return 0.0, table.to_table(hit[ok])[0]
+    xy = table.to_table(hit[ok])[0]
+    lo, hi = xy.min(axis=0) - res_m, xy.max(axis=0) + res_m
+    nx, ny = (int(math.ceil(c)) for c in (hi - lo) / res_m)
+    gx, gy = np.meshgrid(lo[0] + (np.arange(nx) + 0.5) * res_m, lo[1] + (np.arange(ny) + 0.5) * res_m)
+    cells = np.stack([gx, gy], axis=-1)
+
+    def width(h: float) -> float:
+        under = prism_footprint(cells, silhouette, table, intrinsics, h)
+        return minimum_width(cells[under]) if under.sum() >= 3 else 0.0
+
+    low, high = 0.0, width(0.0)
+    for _ in range(iterations):
+        mid = 0.5 * (low + high)
+        low, high = (mid, high) if width(mid) >= mid else (low, mid)
+    return low, cells[prism_footprint(cells, silhouette, table, intrinsics, low)]
+
+
+def _touching_clear_parts(target_px: np.ndarray, missing: np.ndarray, depth_seen: np.ndarray, px_labels: np.ndarray,
+                          target: int) -> np.ndarray:
+    """Pixels of the other parts of a clear target: no-return regions and evidence components touching its
+    pixels in the image (8-connected) that are themselves clear - fewer than ``CHROMA_CLEAR_FRACTION`` of
+    their pixels seen in depth. A clear body falls apart into a specular ridge, holes at its ends and a
+    seen-through interior; an object seen in depth next to it is not taken."""
+    touch = cv2.dilate(target_px.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    out = np.zeros_like(target_px)
+    for lab in np.unique(px_labels[touch & (px_labels > 0) & ~target_px]):
+        if lab == target:
+            continue
+        part = px_labels == lab
+        if np.mean(depth_seen[part]) < CHROMA_CLEAR_FRACTION:
+            out |= part
+    n, holes = cv2.connectedComponents((missing & (px_labels == 0)).astype(np.uint8), connectivity=8)
+    ids = np.unique(holes[cv2.dilate((target_px | out).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0])
+    return out | (np.isin(holes, ids[ids > 0]) & missing)
+
+
+def _clear_body_cells(under: np.ndarray, depth_seen: np.ndarray, observed: np.ndarray, occupancy: np.ndarray,
+                      missing: np.ndarray, miss_c: np.ndarray, disagreement: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A clear target's cells from its prism footprint ``under`` (:func:`prism_footprint`, M x M).
+
+    Cells outside the footprint that the target reached only through its body or its holes (not mostly seen
+    in depth, ``depth_seen``) are the table *behind* it, seen through the plastic: table (occupancy 0, not
+    missing, no disagreement; trained as seen table). Observed cells inside it are the body: object with
+    colour/hole evidence only (occupancy 1, disagreement 1 - unknown cells that the prior governs, as the
+    seen-through interior). Returns new (occupancy, missing, miss_c, disagreement)."""
+    behind = observed & ~under & ~depth_seen & ((occupancy > 0) | missing)
+    body = observed & under & ~depth_seen
+    occupancy = np.where(behind, 0.0, np.where(body, np.maximum(occupancy, 1.0), occupancy))
+    disagreement = np.where(behind, 0.0, np.where(body & ~missing, 1.0, disagreement))
+    return occupancy, missing & ~behind, np.where(behind, 0.0, miss_c), disagreement, body & ~missing
+
+
 def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
                    intr: CameraIntrinsics) -> tuple[int, int]:
     """Label of the target component and the number of objects seen (module docstring, step 5)."""
@@ -1371,7 +1470,8 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
                            & (np.abs(np.nan_to_num(height)) <= h_thr), params.transparent_close_m)
     # seen through a transparent target: colour/hole evidence only - object in the occupancy, depth and colour
     # disagree (uncertain cells, like the paper's Object A), never observed-depth table
-    if params.chroma_z_min > 0 and np.mean(p_d[target_px] > 0.5) < CHROMA_CLEAR_FRACTION:  # a clear target's body
+    depth_fraction = float(np.mean(p_d[target_px] > 0.5))
+    if params.chroma_z_min > 0 and depth_fraction < CHROMA_CLEAR_FRACTION:  # a clear target's body
         chroma_z = chromaticity_distance(rgb_mean, inlier)[0]
         rx, ry, r_ok = raster.cell(foot_xy)  # not over another object's cells in the table plane either
         under = np.where(r_ok, raster.labels[ry, rx], 0)
@@ -1382,6 +1482,18 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     rgb_test = p_c > 0.5  # the colour test itself (published as rgb_mask), before the seen-through pixels
     target_px, occ, p_c = target_px | through, np.where(through, 1.0, occ), np.where(through, 1.0, p_c)
     target_xy = foot_xy[target_px]
+    body_height, clear_target = 0.0, False
+    if params.clear_body_prism and depth_fraction < CHROMA_CLEAR_FRACTION:
+        # a clear body: with its clear parts, less than CLEAR_BODY_FRACTION of it seen in depth (a partly clear
+        # object - the paper's Object A - keeps its clear part uncertain)
+        whole = target_px | _touching_clear_parts(target_px, missing_px, p_d > 0.5, px_labels, target)
+        clear_target = bool(np.mean(p_d[whole] > 0.5) < CLEAR_BODY_FRACTION)
+    if clear_target:
+        target_px = whole
+        body_height, body_xy = clear_body_height(target_px, table, intrinsics)
+        seen_xy = foot_xy[target_px & valid & (p_d > 0.5)]
+        if body_xy.shape[0] >= 3:  # the grid spans the body's footprint, not the table seen through it
+            target_xy = np.concatenate([body_xy, seen_xy[np.isfinite(seen_xy).all(axis=1)]])
 
     # 6. square grid in the table plane around the target's footprint
     lo, hi = target_xy.min(axis=0), target_xy.max(axis=0)
@@ -1400,9 +1512,12 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     valid_px = valid.astype(np.float64)
     occ_t = np.where(target_px, occ, 0.0)  # other objects are not the target: table in its grid
     wt = _table_area_weights(foot_xy, table.to_table(hit_points)[0], valid)
+    seen_in_depth = (target_px & valid & (p_d > 0.5)).astype(np.float64)
     sums = _accumulate(cell, [wt * v for v in (np.ones((h, w)), occ_t, p_d * valid_px, p_c * valid_px, valid_px,
-                                               miss_t.astype(np.float64), np.where(valid, var_z, 0.0))], m * m)
-    n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var = (s.reshape(m, m) for s in sums)
+                                               miss_t.astype(np.float64), np.where(valid, var_z, 0.0),
+                                               seen_in_depth)], m * m)
+    n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_seen = (s.reshape(m, m) for s in sums)
+    depth_seen_cell = s_seen > 0.5 * np.maximum(n_inf, 1e-12)  # mostly the target seen in depth (before any fill)
 
     # cells between the feet of neighbouring pixels (a grid finer than the pixels' footprint on the
     # table): the mean of their observed 8-neighbours, if at least 3, for as many cells as a footprint spans
@@ -1431,7 +1546,8 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
         ui, vi = np.clip(ui, 0, w - 1), np.clip(vi, 0, h - 1)
         sees_table = inside & valid[vi, ui] & (np.nan_to_num(height[vi, ui]) <= h_thr)
-        sees_target_hole = inside & miss_t[vi, ui]
+        # a target hole placed on its ray above the table (_missing_height) is not at this cell: hidden, not a hole
+        sees_target_hole = inside & miss_t[vi, ui] & (h_missing[vi, ui] <= 0)
         occluded[rr, cc] = inside & ~sees_table & ~sees_target_hole
         take = sees_table | sees_target_hole
         r2, c2, v2, u2 = rr[take], cc[take], vi[take], ui[take]
@@ -1449,6 +1565,11 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         rho_c = np.abs(s_pd - s_pc) / s_valid
         depth_var = np.where(s_valid > 0, s_var / s_valid, 0.0)
     disagreement = np.where(observed & (s_valid > 0), np.clip(np.nan_to_num(rho_c), 0.0, 1.0), 0.0)
+    body = np.zeros((m, m), dtype=bool)
+    if clear_target:
+        occupancy, missing, miss_c, disagreement, body = _clear_body_cells(
+            prism_footprint(geometry.cell_centers(), target_px, table, intrinsics, body_height), depth_seen_cell,
+            observed, occupancy, missing, miss_c, disagreement)
 
     # SDF noise: depth + discretisation + disagreement + propagation (module docstring, Noise map). Unknown
     # cells - missing, extended regions where the masks disagree, or mostly no-return pixels the target did
@@ -1460,7 +1581,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         foreign = _foreign_missing_fraction(row, col, in_grid, informative, missing_px & ~target_px,
                                             m) > params.missing_cell_fraction
         uncertain |= foreign
-        unknown |= foreign | _extended_regions(disagree)
+        unknown |= foreign | (_extended_regions(disagree) & ~(body if params.train_clear_body else False))
     noise = (depth_var + params.discretisation_weight * res ** 2 / 12.0
              + params.disagreement_variance_m2 * disagreement
              + params.disagreement_variance_m2 * np.where(missing, 0.0, miss_c))
