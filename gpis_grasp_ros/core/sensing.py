@@ -70,7 +70,20 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    sigmas off, connected in the image to the target's pixels, in regions holding a 7-pixel disc (a band
    of mixed pixels along an opaque edge does not), not another object's pixels nor over another
    object's raster cells, and not reaching the image border, join the target the same way (colour
-   evidence only: uncertain cells, the prior governs) (:func:`chromatic_extension`).
+   evidence only: uncertain cells, the prior governs) (:func:`chromatic_extension`). **A clear body is
+   a prism** (``clear_body_prism``, default on): when the target, with the clear parts touching it in the
+   image (hole regions, components seen mostly not in depth: a bottle falls apart into a specular ridge,
+   holes at its ends and a seen-through interior, :func:`_touching_clear_parts`), has fewer than
+   ``CLEAR_BODY_FRACTION`` (a quarter) of its pixels seen in depth, its silhouette (closed over gaps
+   narrower than a 7-pixel disc, holes filled) is taken as the image of a prism standing on the table. The
+   seen-through pixels' table points are the footprint swept H tan(tilt) away from the camera (a 6 cm
+   bottle at 52 deg: 8 cm); the footprint is the prism's (:func:`prism_footprint`: the cells whose vertical
+   segment up to H projects onto the silhouette), with H the height at which that footprint is as narrow as
+   high (:func:`clear_body_height`: a body lying on the table; an upright one gets a larger footprint). The
+   grid spans that footprint; cells outside it that the target reached only through its body or holes are
+   the table seen through it (free, trained); observed cells inside it are object with colour/hole
+   evidence, trained with ``disagreement_variance_m2`` (``train_clear_body``; off: unknown cells). A
+   partly clear object (the paper's Object A: half of it seen in depth) keeps its clear part uncertain.
 6. **Grid in the table plane.** The target's footprint bounding box in the table frame plus
    ``margin`` of its larger side on every side gives a square of side S, M x M cells
    (``grid_size``); the grid's pose is the table frame (``GridGeometry.rotation`` = R, ``z`` = d).
@@ -1113,6 +1126,14 @@ def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: Cam
     return low, cells[prism_footprint(cells, silhouette, table, intrinsics, low)]
 
 
+def _filled(mask: np.ndarray) -> np.ndarray:
+    """``mask`` (H x W) with every hole of its 8-connected regions filled (bool)."""
+    out = np.zeros(mask.shape, np.uint8)
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, 1, thickness=cv2.FILLED)
+    return out > 0
+
+
 def _touching_clear_parts(target_px: np.ndarray, missing: np.ndarray, depth_seen: np.ndarray, px_labels: np.ndarray,
                           target: int) -> np.ndarray:
     """Pixels of the other parts of a clear target: no-return regions and evidence components touching its
@@ -1489,11 +1510,13 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         whole = target_px | _touching_clear_parts(target_px, missing_px, p_d > 0.5, px_labels, target)
         clear_target = bool(np.mean(p_d[whole] > 0.5) < CLEAR_BODY_FRACTION)
     if clear_target:
-        target_px = whole
+        # the body's silhouette: its parts closed over gaps narrower than a body's core disc, holes filled
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (CHROMA_CORE_PX, CHROMA_CORE_PX))
+        target_px = _filled(cv2.morphologyEx(whole.astype(np.uint8), cv2.MORPH_CLOSE, disc)) & (valid | missing_px) \
+            & np.isfinite(foot_xy).all(axis=-1)
         body_height, body_xy = clear_body_height(target_px, table, intrinsics)
-        seen_xy = foot_xy[target_px & valid & (p_d > 0.5)]
         if body_xy.shape[0] >= 3:  # the grid spans the body's footprint, not the table seen through it
-            target_xy = np.concatenate([body_xy, seen_xy[np.isfinite(seen_xy).all(axis=1)]])
+            target_xy = body_xy
 
     # 6. square grid in the table plane around the target's footprint
     lo, hi = target_xy.min(axis=0), target_xy.max(axis=0)

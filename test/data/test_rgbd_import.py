@@ -115,6 +115,30 @@ def test_ground_truth_is_the_box_footprint_in_the_table_frame(capture_files):
         ri.ground_truth_from_mask(cap, cv2.imread(str(out / 'mask.png'), 0), cap.depth, (0, 0), table)
 
 
+def test_ground_truth_keeps_true_depth_holes_on_the_object(capture_files):
+    """Mask pixels without a return of the true shape (the far rim of an opaque twin seen at a grazing angle)
+    see the object, not the table behind it: with the far half of the box's top without true depth, the
+    footprint stays the box's (placing those pixels where their rays meet the table, up to H tan 45 deg = 4 cm
+    behind the box, gave an IoU of 0.0 on this scene)."""
+    out, scene, _, target = capture_files
+    cap = ri.load_capture(out / 'rgb.png', out / 'depth.png', out / 'cam.yaml')
+    table = ri.capture_table(cap, SensorModel.named('realsense_d400'))
+    mask = cv2.imread(str(out / 'mask.png'), 0)
+    true_depth = ri.load_depth(out / 'true-depth.png')
+    v, _ = np.nonzero(mask > 0)
+    far = (mask > 0) & (np.arange(mask.shape[0])[:, None] < np.median(v))  # image rows above the middle: the far half
+    holed = np.where(far, np.nan, true_depth)
+    assert far.sum() > 0.3 * (mask > 0).sum()
+    truth = ri.ground_truth_from_mask(cap, mask, holed, target, table)
+    g = truth.geometry
+    xy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    inside = (np.abs(xy[..., 0] - BOX.x) < BOX.half_x) & (np.abs(xy[..., 1] - BOX.y) < BOX.half_y)
+    occ = truth.sdf < 0
+    assert (inside & occ).sum() / (inside | occ).sum() > 0.85
+    with pytest.raises(ValueError, match='no return'):  # no true point at all: nothing to place the holes by
+        ri.ground_truth_from_mask(cap, mask, np.full_like(true_depth, np.nan), target, table)
+
+
 def test_cli_writes_a_one_frame_bag_in_the_shipped_layout(capture_files, tmp_path):
     out, scene, depth_mm, target = capture_files
     bag = tmp_path / 'capture.mcap'

@@ -5,9 +5,9 @@ Head-camera-like views (44-52 degrees) of transparent objects among others. What
 the table plane and the grid pose, the isolation of the target from its neighbours (a box split
 from the notebook it touches), the planner and gripper simulation on the imported ground truth, and
 the node's behaviour (grids published in the table plane, or a latched reason when the target
-cannot be isolated). The issue's grasp target (>= 14/20 executions) is not met and the bottle's
-occupancy IoU is at the 0.5 limit, so they are not asserted; the figures asserted are those achieved,
-with margin.
+cannot be isolated). On the clear bottle the issue's targets hold (occupancy IoU >= 0.5, >= 14 of 20
+simulated executions in force closure on the true shape: 15/20 with seed 0, 14-17 over seeds 0-4);
+on the flower box they do not (README), so its figures asserted are those achieved, with margin.
 """
 
 from __future__ import annotations
@@ -65,32 +65,35 @@ def test_real_table_plane_and_grid_pose(bottle):
 
 
 def test_real_target_is_isolated_from_its_neighbours(bottle):
-    """Five objects on the cloth: the target's grid holds the lying bottle only - every occupied cell is on
-    the true bottle (none on the upright bottles next to it, although the chromatic extension of its body
-    touches the base of the one behind it). About half of the clear bottle's footprint is occupied (121 of
-    the grid's 245 true cells; 63 without the chromatic extension)."""
+    """Five objects on the cloth: the target's grid holds the lying bottle only - its occupied cells lie on
+    the true bottle or within a cell of it (none on the upright bottles next to it, although the chromatic
+    extension of its body touches the base of the one behind it): 90 cells, 80 % inside, 98 % within a
+    cell (one cell of specular returns 2.7 cm off). The clear body is the prism under its silhouette: the
+    table seen through it lands up to H tan 52 deg = 8 cm behind it and is table, not object."""
     scene, result = bottle
     assert result.objects_seen >= 3
     g, tg = result.geometry, scene.true_geometry
     true_sdf = bilinear(scene.true_sdf.astype(np.float64), tg, tg.from_sensor(g.to_sensor(g.cell_centers()))[0])
     occupied = result.occupancy >= 0.5
-    assert occupied.sum() >= 90
-    assert np.mean(true_sdf[occupied] < 0) > 0.95
+    assert occupied.sum() >= 70
+    assert np.mean(true_sdf[occupied] < 0) > 0.75
+    assert np.mean(true_sdf[occupied] < g.resolution) > 0.95
     assert g.size_m[0] < 0.25  # a grid around one bottle, not around the scene
 
 
 def test_real_bottle_plan_and_simulated_executions():
     ev = evaluate_bag(BOTTLE, TARGETS[BOTTLE], trials=20, seed=0)
     assert ev.trials == 20 and 0 <= ev.successes <= 20
-    assert 0.4 < ev.occupancy_iou <= 1.0  # README: 0.49 (0.14 without the chromatic extension of the body)
-    assert ev.mean_shape_iou > 0.4  # README: 0.58 (0.09 without)
+    assert 0.5 <= ev.occupancy_iou <= 1.0  # README: 0.58 (0.35 without the clear body's prism)
+    assert ev.mean_shape_iou > 0.4  # README: 0.45
+    assert ev.successes >= 14  # README: 15/20 (0/20 without the prism); seeds 1-4: 14-17
     assert ev.jaw_clearance_m > 0.005  # no jaw on another object seen on the table
 
 
 def test_real_flower_box_is_split_from_the_notebook_it_touches():
     """The clear box stands against the notebook, whose evidence reaches the image border: the flat
     notebook (12-16 mm) and the taller box are split in the table raster, so the box is a target of
-    its own (README: occupancy IoU 0.27, targets missed) while the notebook itself is still refused
+    its own (README: occupancy IoU 0.45, targets missed) while the notebook itself is still refused
     as cut by the border."""
     scene = load_bag(FLOWER, frames=1)
     params = SensingParams(sensor=D400, target='pixel', target_point=TARGETS[FLOWER])
@@ -106,7 +109,7 @@ def test_real_flower_box_is_split_from_the_notebook_it_touches():
     with pytest.raises(ValueError, match='border'):
         segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, notebook)
     ev = evaluate_bag(FLOWER, TARGETS[FLOWER], trials=20, seed=0)
-    assert ev.occupancy_iou > 0.15 and ev.jaw_clearance_m > 0.005  # no jaw on another object
+    assert ev.occupancy_iou > 0.35 and ev.jaw_clearance_m > 0.005  # no jaw on another object
 
 
 def _cloud(path: Path, stamp_ns: int) -> PointCloud2:
