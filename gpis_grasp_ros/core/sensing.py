@@ -1081,10 +1081,10 @@ def prism_footprint(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFr
     this undoes the sweep. ``height_m`` = 0 gives the silhouette's own table points."""
     sil = cv2.dilate(np.asarray(silhouette, dtype=np.uint8), np.ones((3, 3), np.uint8)) > 0
     h_img, w_img = sil.shape
-    xy = np.asarray(cells_xy, dtype=np.float64)
-    under = np.ones(xy.shape[:-1], dtype=bool)
+    base = table.to_camera(np.asarray(cells_xy, dtype=np.float64))  # camera frame, on the table
+    under = np.ones(base.shape[:-1], dtype=bool)
     for h in np.linspace(0.0, max(height_m, 0.0), max(2, int(math.ceil(height_m / step_m)) + 1)):
-        pts = table.to_camera(xy, h)
+        pts = base + h * table.n  # h above the table along its normal (towards the camera)
         with np.errstate(invalid='ignore', divide='ignore'):
             uv = np.round(intrinsics.project(pts))
         inside = (pts[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w_img) & (uv[..., 1] >= 0) & (uv[..., 1] < h_img)
