@@ -226,3 +226,55 @@ def test_measured_object_height_sets_grasp_height_end_to_end():
         assert plan.success and plan.grasp_height == pytest.approx(0.015, abs=1e-12)
     finally:
         ros.close()
+
+
+def test_object_top_after_the_fit_completes_the_model():
+    """Topics are not ordered: the grids arrive, gpis_node fits and publishes the model with height 0 (unknown);
+    the matching object/top arrives afterwards and the model is published again with its height, from the same
+    fit. A top with another stamp changes nothing."""
+    from geometry_msgs.msg import PointStamped
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.parameter import Parameter
+
+    from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
+    from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
+    from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
+    from rosutil import RosHarness, wait_for
+
+    f = rcv.RclpyFactory()
+    rot = quaternion_to_rotation(np.array([0.3, 0.0, 0.0, 0.954]) / np.linalg.norm([0.3, 0.0, 0.0, 0.954]))
+    g = GridGeometry(-0.05, -0.05, 0.004, 25, 25, 0.7, 'cam', tuple(rot.ravel()))
+    yy, xx = np.mgrid[0:25, 0:25]
+    occ = np.where((np.abs(xx - 12) <= 5) & (np.abs(yy - 12) <= 3), 100, 0).astype(np.int8)
+    noise = np.full(occ.shape, 1e-6, np.float32)
+    ros = RosHarness(threads=4)
+    try:
+        ros.add(GpisNode(context=ros.context, parameter_overrides=[Parameter('blur_samples', value=20)]))
+        client = ros.node('late_top_client')
+        models = []
+        client.create_subscription(GpisModel, 'gpis/model', models.append, LATCHED_QOS)
+        occ_pub = client.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
+        noise_pub = client.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
+        top_pub = client.create_publisher(PointStamped, 'object/top', LATCHED_QOS)
+        stamp = 5_000_000_000
+        occ_pub.publish(cv.numpy_to_occupancy_grid(f, occ, g, cv.header(f, stamp, 'cam')))
+        noise_pub.publish(cv.numpy_to_float_grid(f, noise, g, cv.header(f, stamp, 'cam'), unit='m^2'))
+        assert wait_for(lambda: bool(models), 60.0)
+        assert models[-1].object_height == 0.0
+        centre = g.to_sensor(np.array([0.0, 0.0]), 0.042)
+
+        def top(t_ns: int) -> PointStamped:
+            msg = PointStamped(header=cv.header(f, t_ns, 'cam'))
+            msg.point.x, msg.point.y, msg.point.z = (float(v) for v in centre)
+            return msg
+
+        top_pub.publish(top(stamp + 10**9))  # another frame's top: ignored
+        wait_for(lambda: len(models) > 1, 1.0)
+        assert len(models) == 1
+        top_pub.publish(top(stamp))
+        assert wait_for(lambda: len(models) > 1, 10.0)
+        late = models[-1]
+        assert late.object_height == pytest.approx(0.042, abs=1e-6)
+        assert late.header.stamp == models[0].header.stamp and list(late.mean) == list(models[0].mean)
+    finally:
+        ros.close()

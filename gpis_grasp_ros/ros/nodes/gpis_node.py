@@ -9,7 +9,9 @@ and publishes latched ``gpis/model`` (GpisModel), ``gpis/mean`` and ``gpis/varia
 
 ``GpisModel.object_height`` is the height above the grid's table plane of the latched
 ``object/top`` point (geometry_msgs/PointStamped from segmentation_node) with the occupancy's stamp
-and frame; 0 (unknown) when none matches (an older or another publisher of the grids).
+and frame; 0 (unknown) when none matches (an older or another publisher of the grids). Topics are not
+ordered with each other: when the matching ``object/top`` arrives after the model was published with
+height 0, ``gpis/model`` is published again with the height (same fit, no refit).
 """
 
 from __future__ import annotations
@@ -134,6 +136,7 @@ class GpisNode(GuardedNode):
         self._noise: FloatGrid | None = None
         self._last_pair = None
         self._top: PointStamped | None = None
+        self._published: tuple[gpis.GpisPosterior, Any, float] | None = None  # last model, its header, its height
         self._lock = threading.Lock()
         self.create_subscription(PointStamped, 'object/top', guarded(self, 'object/top', self._on_top), LATCHED_QOS)
         self.create_subscription(OccupancyGrid, 'object/occupancy',
@@ -174,6 +177,27 @@ class GpisNode(GuardedNode):
             return
         with self._lock:
             self._top = msg
+        self._complete_height()
+
+    def _complete_height(self) -> None:
+        """Re-publish the last model with its object height when it went out as unknown (0) and the matching
+        ``object/top`` is here now (it arrived after the fit, or while the model was being published)."""
+        with self._lock:
+            last = self._published
+        if last is None or last[2] > 0.0:
+            return
+        posterior, header, _ = last
+        height = self.object_height(header, posterior.geometry, self.config.stamp_tolerance)
+        if height <= 0.0:
+            return
+        with self._lock:
+            if self._published is not last:  # a newer model went out meanwhile: it carries its own height
+                return
+            self._published = (posterior, header, height)
+        self.model_pub.publish(messages.posterior_to_gpis_model(posterior, header, conversions.RclpyFactory(),
+                                                                object_height=height))
+        self.get_logger().info(f'object/top arrived after the fit: gpis/model re-published with object height '
+                               f'{height * 1000:.1f} mm')
 
     def object_height(self, header, geometry, tolerance_s: float) -> float:
         """Height (m) above the grid's table plane of the ``object/top`` point matching ``header`` (stamp within
@@ -256,6 +280,9 @@ class GpisNode(GuardedNode):
         self.get_logger().info(f'published GPIS {g.height}x{g.width}: C={p.signal_variance:.3g} m^2, '
                                f'l={p.length_scale * 1000:.1f} mm, prior mean={p.prior_mean * 1000:.1f} mm, '
                                f'object height {height * 1000:.1f} mm' + ('' if height > 0 else ' (unknown)'))
+        with self._lock:
+            self._published = (posterior, header, height)
+        self._complete_height()
 
 
 def main(args: list[str] | None = None) -> int:
