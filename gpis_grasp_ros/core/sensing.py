@@ -555,7 +555,8 @@ class _Raster:
 
 def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, rays: np.ndarray, table: TableFrame,
                     intrinsics: CameraIntrinsics, footprint_m: float, window_m: float = MISSING_HEIGHT_WINDOW_M,
-                    reach_m: float = MISSING_BRIDGE_M, samples: int = 24) -> np.ndarray:
+                    reach_m: float = MISSING_BRIDGE_M, samples: int = 24,
+                    return_tested: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Height (m) above the table at which each pixel without a depth return is placed on its ray (0 = where
     the ray meets the table, also for every pixel with depth).
 
@@ -586,10 +587,13 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
        the median placement error of the specular wall pixels fell from 2-5 mm to 0.5-2.2 mm and that of the
        projector shadows from 17-36 mm to 0-11 mm.
 
-    Heights are along the table normal (m); ``footprint_m`` is a pixel's extent on the table (m)."""
+    Heights are along the table normal (m); ``footprint_m`` is a pixel's extent on the table (m).
+    ``return_tested``: also return the pixels placed by the prism test (a tested pixel at height 0 is on
+    the table beside the object: its ray meets no part of it)."""
     out = np.zeros(height.shape)
+    tested = np.zeros(height.shape, dtype=bool)
     if not missing.any() or not above.any():
-        return out
+        return (out, tested) if return_tested else out
     k = max(3, 2 * int(round(0.5 * window_m / max(footprint_m, 1e-6))) + 1)
     h_above = np.where(above, np.nan_to_num(height), 0.0).astype(np.float32)
     top = cv2.dilate(h_above, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
@@ -602,15 +606,16 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     touching[0] = False
     vs, us = np.nonzero(missing & touching[region] & (dist_px * footprint_m <= reach_m))
     if vs.size == 0:
-        return out
+        return (out, tested) if return_tested else out
     near = seen[np.clip(nearest[vs, us] - 1, 0, len(seen) - 1)]
     top_h = top[near[:, 0], near[:, 1]].astype(np.float64)
     ray = rays[vs, us]
     ray_n = ray @ table.n
     ok = (ray_n < -1e-9) & (top_h > 0)
     vs, us, top_h, ray, ray_n = vs[ok], us[ok], top_h[ok], ray[ok], ray_n[ok]
+    tested[vs, us] = True
     if vs.size == 0:
-        return out
+        return (out, tested) if return_tested else out
     # the object's pixels, not dilated: a point projecting onto the pixel next to the silhouette is not on it
     obj = above | missing
     h_img, w_img = obj.shape
@@ -651,7 +656,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
         if todo.size == 0:
             break
     out[vs, us] = placed
-    return out
+    return (out, tested) if return_tested else out
 
 
 def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJECT_HEIGHT_PERCENTILE,
@@ -1532,8 +1537,9 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     # 5. orthographic feet on the table; evidence above the plane, on the table, in the ROI; the target
     footprint = float(np.median(z_mean[inlier])) / min(intrinsics.fx, intrinsics.fy) / max(
         math.cos(math.radians(table.tilt_deg)), 0.3)
-    h_missing = _missing_height(height, valid & (np.nan_to_num(height) > h_thr), missing_px, rays, table,
-                                intrinsics, footprint)
+    h_missing, tested = _missing_height(height, valid & (np.nan_to_num(height) > h_thr), missing_px, rays, table,
+                                        intrinsics, footprint, return_tested=True)
+    off_hull = tested & (h_missing <= 0)  # next to an object, but on the table: its ray meets no part of it
     hit_points, hit = table.ray_intersection(rays)
     ray_dot = rays @ normal
     ray_cos = np.maximum(np.abs(ray_dot) / np.linalg.norm(rays, axis=-1), 1e-3)  # cosine of a ray to the normal
@@ -1597,6 +1603,12 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         seen_xy = foot_xy[target_px & valid & (p_d > 0.5)]
         if body_xy.shape[0] >= 3:  # the grid spans the body's footprint, not the table seen through it
             target_xy = np.concatenate([body_xy, seen_xy[np.isfinite(seen_xy).all(axis=1)]])
+    elif off_hull.any():
+        # no-return pixels next to the target whose ray meets no part of its visual hull (_missing_height: a
+        # projector shadow or drop-out on the table beside it) are table the sensor did not measure, not
+        # the target: they neither vote object in the cells they fall in nor stretch the grid
+        target_px = target_px & ~off_hull
+        target_xy = foot_xy[target_px]
 
     # 6. square grid in the table plane around the target's footprint
     lo, hi = target_xy.min(axis=0), target_xy.max(axis=0)
@@ -1631,10 +1643,14 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     hidden_part = _hidden_fraction(geometry, intrinsics, foot_xy, np.where(valid, np.nan_to_num(height), h_missing),
                                    (valid & (np.nan_to_num(height) > h_thr)) | (h_missing > 0), footprint,
                                    float(np.nanmax(np.sqrt(np.maximum(1.0 - ray_cos ** 2, 0.0)) / ray_cos)))
+    # cells holding only the feet of holes on the table beside the target (off its visual hull) are not between
+    # the feet of seen pixels: no measurement, not interpolated from the target's cells next to them
+    unmeasured = np.bincount(np.where(in_grid & off_hull, np.nan_to_num(row) * m + np.nan_to_num(col), 0).astype(
+        np.int64)[in_grid & off_hull], minlength=m * m).reshape(m, m) > 0
     for _ in range(int(math.ceil(footprint / res))):
         seen = (n_inf > 0).astype(np.float32)
         n_nb = cv2.filter2D(seen, -1, kernel3, borderType=cv2.BORDER_CONSTANT)
-        fill = (n_inf == 0) & (n_nb >= 3) & ~hidden
+        fill = (n_inf == 0) & (n_nb >= 3) & ~hidden & ~unmeasured
         if not fill.any():
             break
         for arr in stats:
@@ -1685,7 +1701,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     uncertain = missing | disagree
     unknown = missing.copy()
     if params.exclude_uncertain:
-        foreign = _foreign_missing_fraction(row, col, in_grid, informative, missing_px & ~target_px,
+        foreign = _foreign_missing_fraction(row, col, in_grid, informative, missing_px & ~target_px & ~off_hull,
                                             m) > params.missing_cell_fraction
         uncertain |= foreign
         unknown |= foreign | (_extended_regions(disagree) & ~(body if params.train_clear_body else False))
