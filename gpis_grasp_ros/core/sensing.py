@@ -187,7 +187,7 @@ CHROMA_CLEAR_FRACTION = 0.5  # a target with fewer of its pixels seen in depth i
 CLEAR_BODY_FRACTION = 0.25  # a target with fewer of its pixels seen in depth is a clear body (prism footprint)
 PRISM_STEP_M = 0.003  # height step (m) of the visual-hull test of a clear body's prism
 PRISM_RASTER_M = 0.002  # raster (m) on which a clear body's height is found
-HIDDEN_SUBCELLS = 4  # points per cell side at which the hidden part of a cell is found
+HIDDEN_SUBCELLS = 8  # points per cell side at which the hidden part of a cell is found
 CHROMA_CORE_PX = 7  # a region seen through a clear body holds a disc this wide (px); an edge band does not
 
 
@@ -1243,8 +1243,8 @@ def _nearer_difference(xy: np.ndarray, axis: int) -> np.ndarray:
     back = np.pad(d, pad, constant_values=np.nan)
     pad[axis] = (0, 1)
     fwd = np.pad(d, pad, constant_values=np.nan)
-    n_back = np.nan_to_num(np.linalg.norm(back, axis=-1), nan=np.inf)
-    n_fwd = np.nan_to_num(np.linalg.norm(fwd, axis=-1), nan=np.inf)
+    n_back = np.nan_to_num(back[..., 0] ** 2 + back[..., 1] ** 2, nan=np.inf)
+    n_fwd = np.nan_to_num(fwd[..., 0] ** 2 + fwd[..., 1] ** 2, nan=np.inf)
     return np.where((n_back <= n_fwd)[..., None], back, fwd)
 
 
@@ -1267,12 +1267,17 @@ def _table_area_weights(foot_xy: np.ndarray, ray_xy: np.ndarray, valid: np.ndarr
         a, b = _nearer_difference(xy, 1), _nearer_difference(xy, 0)
         return np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
 
+    def plane_area(xy: np.ndarray) -> np.ndarray:  # the table's own feet: smooth, central differences
+        xu, yu = np.gradient(xy[..., 0], axis=1), np.gradient(xy[..., 1], axis=1)
+        xv, yv = np.gradient(xy[..., 0], axis=0), np.gradient(xy[..., 1], axis=0)
+        return np.abs(xu * yv - yu * xv)
+
     if min(foot_xy.shape[:2]) < 3:
         return np.ones(foot_xy.shape[:2])
     feet = np.where(valid[..., None], foot_xy, ray_xy).astype(np.float32)
     feet = np.stack([cv2.medianBlur(np.ascontiguousarray(feet[..., i]), 3) for i in range(2)], axis=-1)
     with np.errstate(invalid='ignore', divide='ignore'):
-        ratio = np.where(valid, area(feet.astype(np.float64)), np.nan) / area(ray_xy)
+        ratio = np.where(valid, area(feet.astype(np.float64)), np.nan) / plane_area(ray_xy)
     return np.clip(np.where(np.isfinite(ratio), ratio, 1.0), 0.0, 4.0)
 
 
@@ -1307,10 +1312,11 @@ def _hidden_cells(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_xy:
 
 
 def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_xy: np.ndarray, height: np.ndarray,
-                     above: np.ndarray, tol_m: float, tan_max: float, sub: int = HIDDEN_SUBCELLS,
-                     max_samples: int = 256, window_m: float = MISSING_HEIGHT_WINDOW_M) -> np.ndarray:
+                     above: np.ndarray, tol_m: float, tan_max: float, cells: np.ndarray,
+                     sub: int = HIDDEN_SUBCELLS, max_samples: int = 256,
+                     window_m: float = MISSING_HEIGHT_WINDOW_M) -> np.ndarray:
     """(M, M) fraction of each cell's area hidden behind an object from the camera, on ``sub`` x ``sub``
-    points per cell.
+    points per cell, for the ``cells`` asked (0 elsewhere).
 
     A table point x is under a surface the camera sees if, at some height h, the pixel looking at the point
     h above x sees a surface (``above``, at ``height``; no-return pixels placed above the table by
@@ -1332,7 +1338,7 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
                         geometry.z, geometry.frame_id, geometry.rotation)
     points = fine.cell_centers()
 
-    def pixel(pts: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def pixel(pts: np.ndarray, h: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with np.errstate(invalid='ignore', divide='ignore'):
             uv = intrinsics.project(fine.to_sensor(pts, h))
         u, v = np.round(uv[..., 0]), np.round(uv[..., 1])
@@ -1341,7 +1347,7 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
                 np.clip(np.nan_to_num(v), 0, h_img - 1).astype(np.int64), inside)
 
     u, v, inside = pixel(points, 0.0)
-    covered = inside & above[v, u]
+    covered = inside & above[v, u] & np.repeat(np.repeat(cells, sub, axis=0), sub, axis=1)
     if not covered.any():
         return np.zeros((m_y, m_x))
     todo = points[covered]
@@ -1363,14 +1369,8 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     local_top = cv2.dilate(np.where(above, height, 0.0).astype(np.float32),
                            cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
     rest = np.flatnonzero(~under)
-    u0, v0, _ = pixel(todo[rest], 0.0)
-    h_top = local_top[v0, u0].astype(np.float64)
-    with np.errstate(invalid='ignore', divide='ignore'):
-        uv = intrinsics.project(fine.to_sensor(todo[rest], h_top))
-    u, v = np.round(uv[..., 0]), np.round(uv[..., 1])
-    inside = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w_img) & (v >= 0) & (v < h_img)
-    u = np.clip(np.nan_to_num(u), 0, w_img - 1).astype(np.int64)
-    v = np.clip(np.nan_to_num(v), 0, h_img - 1).astype(np.int64)
+    u, v, _ = pixel(todo[rest], 0.0)
+    u, v, inside = pixel(todo[rest], local_top[v, u].astype(np.float64))
     under[rest[inside & above[v, u]]] = True
     hidden = covered.copy()
     hidden[covered] = ~under
@@ -1640,9 +1640,6 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     kernel3 = np.ones((3, 3), np.float32)
     hidden = _hidden_cells(geometry, intrinsics, foot_xy, height, valid & (np.nan_to_num(height) > h_thr),
                            max(1.5 * res, 2.0 * footprint))  # behind an object: not interpolated
-    hidden_part = _hidden_fraction(geometry, intrinsics, foot_xy, np.where(valid, np.nan_to_num(height), h_missing),
-                                   (valid & (np.nan_to_num(height) > h_thr)) | (h_missing > 0), footprint,
-                                   float(np.nanmax(np.sqrt(np.maximum(1.0 - ray_cos ** 2, 0.0)) / ray_cos)))
     # cells holding only the feet of holes on the table beside the target (off its visual hull) are not between
     # the feet of seen pixels: no measurement, not interpolated from the target's cells next to them
     unmeasured = np.bincount(np.where(in_grid & off_hull, np.nan_to_num(row) * m + np.nan_to_num(col), 0).astype(
@@ -1681,6 +1678,10 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     observed = n_inf > 0
     n_safe = np.maximum(n_inf, 1.0)
     # the part of a cell hidden behind an object is table, like a wholly occluded cell (_hidden_fraction)
+    hidden_part = _hidden_fraction(geometry, intrinsics, foot_xy, np.where(valid, np.nan_to_num(height), h_missing),
+                                   (valid & (np.nan_to_num(height) > h_thr)) | (h_missing > 0), footprint,
+                                   float(np.nanmax(np.sqrt(np.maximum(1.0 - ray_cos ** 2, 0.0)) / ray_cos)),
+                                   observed & (s_occ > 0))
     occupancy = np.clip(np.where(observed, s_occ / n_safe * (1.0 - hidden_part), 0.0), 0.0, 1.0)
     miss_c = s_miss / n_safe
     missing = observed & (miss_c > params.missing_cell_fraction)
