@@ -61,6 +61,66 @@ def test_box_footprint_is_recovered_at_every_tilt(tilted):
     assert result.geometry.size_m[0] == pytest.approx(0.06 * 1.4, rel=0.12)
 
 
+def _cells_beyond(result, scene: TiltedScene, box: Box, margin_m: float = 0.001) -> tuple[int, int]:
+    """Occupied cells whose centre lies more than ``margin_m`` beyond the box's wall facing the camera, and
+    beyond its far wall (cell centres mapped through the *true* table frame)."""
+    g = result.geometry
+    xy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    occ = result.occupancy >= 0.5
+    towards = np.sign(scene.table_xy(np.zeros(3))[1] - box.y)  # the camera's side of the box along y
+    dy = towards * (xy[..., 1] - box.y)
+    return int((occ & (dy > box.half_y + margin_m)).sum()), int((occ & (-dy > box.half_y + margin_m)).sum())
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_occupancy_does_not_grow_towards_or_away_from_a_tilted_camera(seed):
+    """The wall facing the camera covers no table and the table behind the top face is hidden, not object.
+
+    At 50 degrees the wall of a 4 cm box facing the camera used to vote a whole row of cells in front of it
+    (18-19 cells more than 1 mm beyond the footprint: wall feet weighted by the noisy |det| of their Jacobian,
+    blurred with the top's and the table's); at 60 degrees the cells behind a 2 cm box's far edge were seen
+    only where its top covers them, and were object (16-17 cells, up to 4.4 mm beyond)."""
+    scene = TiltedScene(50.0, boxes=[BOX])
+    rgb, depth, _ = scene.frames(10, seed=seed)
+    result = segment_frames(rgb, depth, scene.intrinsics)
+    near, far = _cells_beyond(result, scene, BOX)
+    assert near <= 4 and far == 0  # of 18 cells along the wall
+    assert footprint_iou(result, scene, BOX) > 0.9
+    low = Box(0.0, 0.0, 0.05, 0.012, 0.02)
+    scene = TiltedScene(60.0, boxes=[low])
+    rgb, depth, _ = scene.frames(10, seed=seed)
+    result = segment_frames(rgb, depth, scene.intrinsics)
+    near, far = _cells_beyond(result, scene, low)
+    assert near == 0 and far == 0
+    assert footprint_iou(result, scene, low) > 0.9
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_holes_in_the_walls_and_on_the_table_beside_a_tilted_box(seed):
+    """No return from the box's walls facing +-y (specular; one faces a 50 degree camera) nor from a 1 cm
+    strip of table along its +x wall (a projector shadow). The shadow's rays meet no part of the box's
+    single-view visual hull, so its holes are table the sensor missed, not the target: they neither vote
+    object in the cells beside the box nor stretch the grid."""
+    scene = TiltedScene(50.0, boxes=[BOX])
+    rgb, depth, label = scene.frames(10, seed=seed)
+    clean, _, _ = scene.render()
+    xy = scene.table_xy(scene.intrinsics.rays() * clean[..., None])
+    box = label == 1
+    wall = box & (np.abs(np.abs(xy[..., 1] - BOX.y) - BOX.half_y) < 1e-4)  # hits on the walls facing +-y
+    shadow = (label == 0) & (xy[..., 0] > BOX.x + BOX.half_x) & (xy[..., 0] < BOX.x + BOX.half_x + 0.01) \
+        & (np.abs(xy[..., 1] - BOX.y) < BOX.half_y)  # 1 x 4 cm of table along the +x wall
+    assert wall.sum() > 100 and shadow.sum() > 50
+    depth = np.where((wall | shadow)[None], np.nan, depth)
+    result = segment_frames(rgb, depth, scene.intrinsics)
+    assert result.object_mask[shadow].mean() < 0.05
+    # no cell more than 1 mm outside the footprint is occupied, none more than 1 mm inside is free
+    g = result.geometry
+    xy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    out = np.maximum(np.abs(xy[..., 0] - BOX.x) - BOX.half_x, np.abs(xy[..., 1] - BOX.y) - BOX.half_y)
+    occ = result.occupancy >= 0.5
+    assert not (occ & (out > 0.001)).any() and not (~occ & (out < -0.001)).any()
+
+
 def test_object_height_is_measured_at_every_tilt(tilted):
     """The 4 cm box's height above the fitted plane (95th percentile of its depth-seen heights) within 3 mm."""
     scene, result = tilted
