@@ -74,7 +74,7 @@ def hole_errors(letters: str = 'BCDEH') -> None:
         finally:
             sensing._missing_height = place
         _, above, missing, rays, table = captured['args'][:5]
-        h = captured['h']
+        h = captured['h'][0] if isinstance(captured['h'], tuple) else captured['h']  # (heights, tested) or heights
         sim = Scene(head_spec(path.name[0]))
         _, depth, is_wall, _ = sim._trace(sim._rays)
         placed = table.to_table(rays * ((h - table.offset_m) / (rays @ table.n))[..., None] - h[..., None] * table.n)[0]
