@@ -86,6 +86,14 @@ def test_perception_model_switches_are_segmentation_parameters():
         assert (node.params.chroma_z_min, node.params.exclude_uncertain) == (0.0, False)
         assert not node.set_parameters([Parameter('chroma_z_min', value=-1.0)])[0].successful
         assert node.params.chroma_z_min == 0.0
+        assert (node.params.clear_body_prism, node.params.train_clear_body) == (True, True) == (
+            d.clear_body_prism, d.train_clear_body)
+        ok = node.set_parameters([Parameter('clear_body_prism', value=False),
+                                  Parameter('train_clear_body', value=False)])
+        assert all(r.successful for r in ok)
+        assert (node.params.clear_body_prism, node.params.train_clear_body) == (False, False)
+        assert not node.set_parameters([Parameter('clear_body_prism', value=1.5)])[0].successful  # wrong type
+        assert node.params.clear_body_prism is False
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)

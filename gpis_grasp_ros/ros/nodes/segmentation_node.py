@@ -178,6 +178,13 @@ class SegmentationNode(GuardedNode):
                                       'foreign no-return pixels) are not GPIS training points and count as object '
                                       '(the prior governs them); false: the previous model, only missing cells '
                                       'untrained, disagreeing cells trained and free'),
+            clear_body_prism=declare(self, 'clear_body_prism', bool(defaults.clear_body_prism),
+                                     'a clear target (under a quarter of it seen in depth) is the prism under its '
+                                     'silhouette, of the height at which it is as narrow as high; false: the table '
+                                     'seen through it stays where its rays meet the table'),
+            train_clear_body=declare(self, 'train_clear_body', bool(defaults.train_clear_body),
+                                     'the clear body\'s prism cells are GPIS training points (object, SDF variance '
+                                     'of full disagreement); false: unknown cells, the prior governs them'),
             **perception_parameters(self, defaults),
         )
         declare(self, 'min_frames', 3, 'fewest frames of a burst that make an estimate when the burst ends '
@@ -236,7 +243,8 @@ class SegmentationNode(GuardedNode):
                          target_point=(tuple(float(x) for x in v['target_point'])
                                        if target in ('pixel', 'table') else None),
                          max_opening_m=float(v['max_opening']), max_tilt_deg=float(v['max_tilt_deg']),
-                         chroma_z_min=float(v['chroma_z_min']), exclude_uncertain=bool(v['exclude_uncertain']))
+                         chroma_z_min=float(v['chroma_z_min']), exclude_uncertain=bool(v['exclude_uncertain']),
+                         clear_body_prism=bool(v['clear_body_prism']), train_clear_body=bool(v['train_clear_body']))
         if target_needs_point(target) and len(v['target_point']) != 2:
             raise ValueError(f"target '{target}' needs target_point with 2 numbers")
         # min_frames above frames_to_average means: only complete bursts make an estimate
