@@ -81,8 +81,9 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    segment up to H projects onto the silhouette), with H the height at which that footprint is as narrow as
    high (:func:`clear_body_height`: a body lying on the table; an upright one gets a larger footprint). The
    grid spans that footprint; cells outside it that the target reached only through its body or holes are
-   the table seen through it (free, trained); observed cells inside it are object with colour/hole
-   evidence, trained with ``disagreement_variance_m2`` (``train_clear_body``; off: unknown cells). A
+   the table seen through it: free, but trained with ``disagreement_variance_m2`` (free only if the height
+   prior is right); observed cells inside it are object with colour/hole evidence, trained with the same
+   variance (``train_clear_body``; off: unknown cells). A
    partly clear object (the paper's Object A: half of it seen in depth) keeps its clear part uncertain.
 6. **Grid in the table plane.** The target's footprint bounding box in the table frame plus
    ``margin`` of its larger side on every side gives a square of side S, M x M cells
@@ -1169,19 +1170,21 @@ def _touching_clear_parts(target_px: np.ndarray, missing: np.ndarray, depth_seen
 
 def _clear_body_cells(under: np.ndarray, depth_seen: np.ndarray, observed: np.ndarray, occupancy: np.ndarray,
                       missing: np.ndarray, miss_c: np.ndarray, disagreement: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A clear target's cells from its prism footprint ``under`` (:func:`prism_footprint`, M x M).
 
-    Cells outside the footprint that the target reached only through its body or its holes (not mostly seen
-    in depth, ``depth_seen``) are the table *behind* it, seen through the plastic: table (occupancy 0, not
-    missing, no disagreement; trained as seen table). Observed cells inside it are the body: object with
-    colour/hole evidence only (occupancy 1, disagreement 1 - unknown cells that the prior governs, as the
-    seen-through interior). Returns new (occupancy, missing, miss_c, disagreement)."""
+    Observed cells inside the footprint not mostly seen in depth (``depth_seen``) are the **body**: object
+    with colour/hole evidence only (occupancy 1, disagreement 1). Cells outside it that the target reached
+    only through its body or its holes are the table **behind** it, seen through the plastic: table
+    (occupancy 0, not missing) but with disagreement 1 - they are free only if the prism's height, a prior,
+    is right (a lower body would cover part of them). The caller trains both with the disagreement variance
+    rather than leaving them unknown (unknown cells count as object). Returns new (occupancy, missing,
+    miss_c, disagreement) and the body and behind masks."""
     behind = observed & ~under & ~depth_seen & ((occupancy > 0) | missing)
-    body = observed & under & ~depth_seen
+    body = observed & under & ~depth_seen & ~missing
     occupancy = np.where(behind, 0.0, np.where(body, np.maximum(occupancy, 1.0), occupancy))
-    disagreement = np.where(behind, 0.0, np.where(body & ~missing, 1.0, disagreement))
-    return occupancy, missing & ~behind, np.where(behind, 0.0, miss_c), disagreement, body & ~missing
+    disagreement = np.where(behind | body, 1.0, disagreement)
+    return occupancy, missing & ~behind, np.where(behind, 0.0, miss_c), disagreement, body, behind
 
 
 def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
@@ -1712,9 +1715,9 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         rho_c = np.abs(s_pd - s_pc) / s_valid
         depth_var = np.where(s_valid > 0, s_var / s_valid, 0.0)
     disagreement = np.where(observed & (s_valid > 0), np.clip(np.nan_to_num(rho_c), 0.0, 1.0), 0.0)
-    body = np.zeros((m, m), dtype=bool)
+    body = behind = np.zeros((m, m), dtype=bool)
     if clear_target:
-        occupancy, missing, miss_c, disagreement, body = _clear_body_cells(
+        occupancy, missing, miss_c, disagreement, body, behind = _clear_body_cells(
             prism_footprint(geometry.cell_centers(), target_px, table, intrinsics, body_height), depth_seen_cell,
             observed, occupancy, missing, miss_c, disagreement)
 
@@ -1728,7 +1731,8 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         foreign = _foreign_missing_fraction(row, col, in_grid, informative, missing_px & ~target_px & ~off_hull,
                                             m) > params.missing_cell_fraction
         uncertain |= foreign
-        unknown |= foreign | (_extended_regions(disagree) & ~(body if params.train_clear_body else False))
+        trained_clear = behind | (body if params.train_clear_body else False)  # a clear body's prism, trained
+        unknown |= foreign | (_extended_regions(disagree) & ~trained_clear)
     noise = (depth_var + params.discretisation_weight * res ** 2 / 12.0
              + params.disagreement_variance_m2 * disagreement
              + params.disagreement_variance_m2 * np.where(missing, 0.0, miss_c))
