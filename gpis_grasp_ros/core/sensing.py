@@ -237,6 +237,19 @@ class CameraIntrinsics:
         z = p[..., 2]
         return np.stack([self.cx + self.fx * p[..., 0] / z, self.cy + self.fy * p[..., 1] / z], axis=-1)
 
+    def pixel_index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Camera-frame points (..., 3) (m) → the image pixel each projects onto: (u, v) int64 column and row
+        (clipped into the image, so they can index an (H, W) map) and ``inside`` (in front of the camera and
+        in the image)."""
+        p = np.asarray(points, dtype=np.float64)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            uv = np.round(self.project(p))
+        u, v = uv[..., 0], uv[..., 1]
+        inside = (p[..., 2] > 0) & np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < self.width) & (v >= 0) \
+            & (v < self.height)
+        return (np.clip(np.nan_to_num(u), 0, self.width - 1).astype(np.int64),
+                np.clip(np.nan_to_num(v), 0, self.height - 1).astype(np.int64), inside)
+
 
 def _box(value: Sequence[float] | None, name: str) -> tuple[float, float, float, float] | None:
     if value is None:
@@ -611,9 +624,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     k = max(3, 2 * int(round(0.5 * window_m / max(footprint_m, 1e-6))) + 1)
     h_above = np.where(above, np.nan_to_num(height), 0.0).astype(np.float32)
     top = cv2.dilate(h_above, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
-    dist_px, nearest = cv2.distanceTransformWithLabels((~above).astype(np.uint8), cv2.DIST_L2, 5,
-                                                       labelType=cv2.DIST_LABEL_PIXEL)
-    seen = np.argwhere(above)  # in the (row-major) order of OpenCV's pixel labels
+    dist_px, nearest = nearest_pixel(above)
     n_reg, region = cv2.connectedComponents(missing.astype(np.uint8), connectivity=8)
     touching = np.zeros(n_reg, dtype=bool)
     touching[np.unique(region[missing & (dist_px <= 1.5)])] = True
@@ -621,7 +632,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     vs, us = np.nonzero(missing & touching[region] & (dist_px * footprint_m <= reach_m))
     if vs.size == 0:
         return (out, tested) if return_tested else out
-    near = seen[np.clip(nearest[vs, us] - 1, 0, len(seen) - 1)]
+    near = nearest[vs, us]
     top_h = top[near[:, 0], near[:, 1]].astype(np.float64)
     ray = rays[vs, us]
     ray_n = ray @ table.n
@@ -632,19 +643,13 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
         return (out, tested) if return_tested else out
     # the object's pixels, not dilated: a point projecting onto the pixel next to the silhouette is not on it
     obj = above | missing
-    h_img, w_img = obj.shape
 
     def on_object(points: np.ndarray) -> np.ndarray:
-        with np.errstate(invalid='ignore', divide='ignore'):
-            uv = np.round(intrinsics.project(points))
-        inside = (points[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w_img) & (uv[..., 1] >= 0) \
-            & (uv[..., 1] < h_img)
-        u = np.clip(np.nan_to_num(uv[..., 0]), 0, w_img - 1).astype(np.int64)
-        v = np.clip(np.nan_to_num(uv[..., 1]), 0, h_img - 1).astype(np.int64)
+        u, v, inside = intrinsics.pixel_index(points)
         return inside & obj[v, u]
 
     # from the top down, the first sample whose foot has its whole vertical segment 0..H seen as object, checked
-    # at every image pixel it spans (the object mask is dilated by one pixel);
+    # at every image pixel it spans (the object mask as it is, not dilated);
     # pixels are dropped from the search once placed
     lift = top_h[:, None] * table.n
     top_foot = ray * ((top_h - table.offset_m) / ray_n)[:, None] - lift
@@ -690,12 +695,19 @@ def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJE
     return max(0.0, float(np.percentile(h, percentile)))
 
 
+def nearest_pixel(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For every pixel (or raster cell) of ``mask`` (H x W bool, at least one True): the distance to the nearest
+    True pixel (float32, pixels; 0 on them) and that pixel's (row, column) (H x W x 2 int)."""
+    m = np.asarray(mask, dtype=bool)
+    dist, nearest = cv2.distanceTransformWithLabels((~m).astype(np.uint8), cv2.DIST_L2, 5,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+    seen = np.argwhere(m)  # in the (row-major) order of OpenCV's pixel labels
+    return dist, seen[np.clip(nearest - 1, 0, len(seen) - 1)]
+
+
 def _nearest_label(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For every raster cell: the label of the nearest labelled cell and the distance to it (cells)."""
-    src = (labels == 0).astype(np.uint8)
-    dist, nearest = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-    cells = np.argwhere(src == 0)  # the labelled cells, in the (row-major) order of OpenCV's pixel labels
-    near = cells[np.clip(nearest - 1, 0, len(cells) - 1)]
+    dist, near = nearest_pixel(labels > 0)
     return labels[near[..., 0], near[..., 1]], dist
 
 
@@ -730,6 +742,14 @@ def _flood(markers: np.ndarray, dist: np.ndarray, mask: np.ndarray) -> np.ndarra
     return out.astype(np.int32)
 
 
+def _filled(mask: np.ndarray) -> np.ndarray:
+    """``mask`` (H x W) with every hole of its 8-connected regions filled (bool)."""
+    out = np.zeros(mask.shape, np.uint8)
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, 1, thickness=cv2.FILLED)
+    return out > 0
+
+
 def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, np.ndarray]:
     """Split touching objects in a labelled raster at the necks of their union (distance-transform watershed).
 
@@ -749,9 +769,7 @@ def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, n
     origin = np.arange(n)
     if n <= 1 or neck_cells <= 0:
         return labels, origin
-    filled = np.zeros(labels.shape, np.uint8)
-    contours, _ = cv2.findContours((labels > 0).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    filled = _filled(labels > 0).astype(np.uint8)
     n_f, lab_f = cv2.connectedComponents(filled, connectivity=8)
     dist = cv2.distanceTransform(np.pad(filled, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
     hmax = _reconstruct(np.maximum(dist - neck_cells, 0.0), dist)
@@ -1047,11 +1065,8 @@ def chromatic_extension(target_px: np.ndarray, candidate: np.ndarray, chroma_z: 
     has_core[np.unique(lab[core])] = True
     keep &= has_core
     keep[0] = False
-    region = (keep[lab] | target_px).astype(np.uint8)
-    filled = np.zeros_like(region)  # gaps enclosed by the body and the target (a label, a highlight) are body too
-    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
-    return (filled > 0) & candidate & ~target_px
+    # gaps enclosed by the body and the target (a label, a highlight) are body too
+    return _filled(keep[lab] | target_px) & candidate & ~target_px
 
 
 def _bounded_extension(target_px: np.ndarray, extension: np.ndarray, params: SensingParams) -> np.ndarray:
@@ -1095,16 +1110,10 @@ def prism_footprint(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFr
     tilted by theta, the silhouette's table points are the footprint swept H tan(theta) away from the camera;
     this undoes the sweep. ``height_m`` = 0 gives the silhouette's own table points."""
     sil = cv2.dilate(np.asarray(silhouette, dtype=np.uint8), np.ones((3, 3), np.uint8)) > 0
-    h_img, w_img = sil.shape
     base = table.to_camera(np.asarray(cells_xy, dtype=np.float64))  # camera frame, on the table
     under = np.ones(base.shape[:-1], dtype=bool)
     for h in np.linspace(0.0, max(height_m, 0.0), max(2, int(math.ceil(height_m / step_m)) + 1)):
-        pts = base + h * table.n  # h above the table along its normal (towards the camera)
-        with np.errstate(invalid='ignore', divide='ignore'):
-            uv = np.round(intrinsics.project(pts))
-        inside = (pts[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w_img) & (uv[..., 1] >= 0) & (uv[..., 1] < h_img)
-        u = np.clip(np.nan_to_num(uv[..., 0]), 0, w_img - 1).astype(np.int64)
-        v = np.clip(np.nan_to_num(uv[..., 1]), 0, h_img - 1).astype(np.int64)
+        u, v, inside = intrinsics.pixel_index(base + h * table.n)  # h above the table, towards the camera
         under &= inside & sil[v, u]
     return under
 
@@ -1139,14 +1148,6 @@ def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: Cam
         mid = 0.5 * (low + high)
         low, high = (mid, high) if width(mid) >= mid else (low, mid)
     return low, cells[prism_footprint(cells, silhouette, table, intrinsics, low)]
-
-
-def _filled(mask: np.ndarray) -> np.ndarray:
-    """``mask`` (H x W) with every hole of its 8-connected regions filled (bool)."""
-    out = np.zeros(mask.shape, np.uint8)
-    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    cv2.drawContours(out, contours, -1, 1, thickness=cv2.FILLED)
-    return out > 0
 
 
 def _touching_clear_parts(target_px: np.ndarray, missing: np.ndarray, depth_seen: np.ndarray, px_labels: np.ndarray,
@@ -1314,22 +1315,11 @@ def _hidden_cells(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_xy:
     (its orthographic foot within ``tol_m`` of the centre). If not, the surface seen belongs to an object
     in front of the cell and the cell is hidden: the feet of the neighbouring pixels (the object's far
     edge and the table beyond the occluded strip) must not be interpolated into it."""
-    h_img, w_img = height.shape
     centres = geometry.cell_centers()
-
-    def pixel(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        with np.errstate(invalid='ignore', divide='ignore'):
-            uv = intrinsics.project(points)
-        u, v = np.round(uv[..., 0]), np.round(uv[..., 1])
-        inside = (points[..., 2] > 0) & np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w_img) & (v >= 0) \
-            & (v < h_img)
-        return (np.clip(np.nan_to_num(u), 0, w_img - 1).astype(np.int64),
-                np.clip(np.nan_to_num(v), 0, h_img - 1).astype(np.int64), inside)
-
-    u0, v0, in0 = pixel(geometry.to_sensor(centres, 0.0))
+    u0, v0, in0 = intrinsics.pixel_index(geometry.to_sensor(centres, 0.0))
     covered = in0 & above[v0, u0]
     h_seen = np.where(covered, np.nan_to_num(height[v0, u0]), 0.0)
-    u1, v1, in1 = pixel(geometry.to_sensor(centres, h_seen))
+    u1, v1, in1 = intrinsics.pixel_index(geometry.to_sensor(centres, h_seen))
     dist = np.linalg.norm(foot_xy[v1, u1] - centres, axis=-1)
     under = in1 & np.isfinite(dist) & (dist <= tol_m)
     return covered & ~under
@@ -1357,18 +1347,12 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     occupancy is the mean over its seen part times the fraction that is seen: the covered fraction. A
     top-down camera hides only a thin strip beside tall objects away from the optical axis."""
     m_y, m_x = geometry.shape
-    h_img, w_img = above.shape
     fine = GridGeometry(geometry.origin_x, geometry.origin_y, geometry.resolution / sub, m_x * sub, m_y * sub,
                         geometry.z, geometry.frame_id, geometry.rotation)
     points = fine.cell_centers()
 
     def pixel(pts: np.ndarray, h: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        with np.errstate(invalid='ignore', divide='ignore'):
-            uv = intrinsics.project(fine.to_sensor(pts, h))
-        u, v = np.round(uv[..., 0]), np.round(uv[..., 1])
-        inside = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w_img) & (v >= 0) & (v < h_img)
-        return (np.clip(np.nan_to_num(u), 0, w_img - 1).astype(np.int64),
-                np.clip(np.nan_to_num(v), 0, h_img - 1).astype(np.int64), inside)
+        return intrinsics.pixel_index(fine.to_sensor(pts, h))
 
     u, v, inside = pixel(points, 0.0)
     covered = inside & above[v, u] & np.repeat(np.repeat(cells, sub, axis=0), sub, axis=1)
@@ -1686,10 +1670,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     occluded = np.zeros((m, m), dtype=bool)
     if empty.any():
         rr, cc = np.nonzero(empty)
-        uv = intrinsics.project(geometry.to_sensor(geometry.cell_centers()[rr, cc]))
-        ui, vi = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
-        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-        ui, vi = np.clip(ui, 0, w - 1), np.clip(vi, 0, h - 1)
+        ui, vi, inside = intrinsics.pixel_index(geometry.to_sensor(geometry.cell_centers()[rr, cc]))
         sees_table = inside & valid[vi, ui] & (np.nan_to_num(height[vi, ui]) <= h_thr)
         # a target hole placed on its ray above the table (_missing_height) is not at this cell: hidden, not a hole
         sees_target_hole = inside & miss_t[vi, ui] & (h_missing[vi, ui] <= 0)
@@ -1731,7 +1712,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         foreign = _foreign_missing_fraction(row, col, in_grid, informative, missing_px & ~target_px & ~off_hull,
                                             m) > params.missing_cell_fraction
         uncertain |= foreign
-        trained_clear = behind | (body if params.train_clear_body else False)  # a clear body's prism, trained
+        trained_clear = behind | (body & params.train_clear_body)  # a clear body's prism, trained
         unknown |= foreign | (_extended_regions(disagree) & ~trained_clear)
     noise = (depth_var + params.discretisation_weight * res ** 2 / 12.0
              + params.disagreement_variance_m2 * disagreement

@@ -48,7 +48,7 @@ import yaml
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sdf import signed_distance
-from gpis_grasp_ros.core.sensing import CameraIntrinsics
+from gpis_grasp_ros.core.sensing import CameraIntrinsics, nearest_pixel
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 from gpis_grasp_ros.data import bagio, messages
 
@@ -319,12 +319,8 @@ def _mask_surface_points(rays: np.ndarray, comp: np.ndarray, true_depth: np.ndar
         raise ValueError('the target has no return of the true shape (--gt-depth) on its mask')
     pts = rays * np.nan_to_num(z)[..., None]
     heights = np.where(valid, pts @ table.n + table.offset_m, 0.0)
-    _, nearest = cv2.distanceTransformWithLabels((~valid).astype(np.uint8), cv2.DIST_L2, 5,
-                                                 labelType=cv2.DIST_LABEL_PIXEL)
-    seen = np.argwhere(valid)  # in the row-major order of OpenCV's pixel labels
-    holes = comp & ~valid
-    vs, us = np.nonzero(holes)
-    near = seen[np.clip(nearest[vs, us] - 1, 0, len(seen) - 1)]
+    vs, us = np.nonzero(comp & ~valid)
+    near = nearest_pixel(valid)[1][vs, us]
     h = heights[near[:, 0], near[:, 1]]
     ray = rays[vs, us]
     with np.errstate(invalid='ignore', divide='ignore'):
