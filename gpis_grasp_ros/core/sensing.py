@@ -25,7 +25,14 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    (``color_smooth_px``, ``color_hole_margin_px``): a Gaussian smoothing of the colour image and
    leaving the inliers next to depth holes out of the colour statistics - measured on the real
    D435 captures they gained nothing, on the simulated bags they cost thin objects. Both maps are
-   cleaned by a grey-level opening then closing.
+   cleaned by a grey-level opening then closing. **Seen through** (``see_through_test``, default on,
+   :func:`see_through_pixels`): objects on a table are height fields, so the column under every point
+   seen above the table is solid; an evidence pixel whose return lies behind the columns imaged over its
+   3 x 3 neighbourhood (by 3 sqrt(2) sigma_z + 5 mm) saw through a clear part - a stereo sensor returns
+   the table behind it, or a blend - and its return is moved to where its ray enters that solid (the
+   farthest its first surface can be). A top-down camera sees every column end-on: nothing is moved. On
+   the real D435 captures the clear flower box's lower face, which returned the table 2-5 cm behind it,
+   lands on the box.
 4. **Occupancy per pixel.** Inverse-variance combination of the masks (depth trusted more than
    colour: a transparent part seen only in colour does not enter the *mean* shape, Object A of
    the paper): o = (p_d / v_d + p_c / v_c) / (1 / v_d + 1 / v_c), v = p (1 - p) + floor.
@@ -293,6 +300,8 @@ class SensingParams:
     transparent_core_occupied: bool = False  # colour-only pixels in the target's core count as seen-through object
     train_clear_body: bool = True  # a clear body's prism cells are trained as object (SDF variance
     #                                disagreement_variance_m2), not unknown
+    see_through_test: bool = True  # depth behind a solid column of a seen object = seen through a clear part
+    #                               (see_through_pixels): such pixels are holes of the object, not its surface
     clear_body_prism: bool = True  # a clear target (mostly no depth on it): its footprint is the prism under its
     #                               silhouette, of the height at which it is as narrow as high (clear_body_height)
     chroma_z_min: float = 1.5  # > 0: grow the target over table-level pixels this many robust sigmas off the
@@ -383,6 +392,8 @@ class SensingResult:
     bbox_px: tuple[int, int, int, int]  # (u_min, v_min, u_max, v_max) of the target, inclusive
     intrinsics: CameraIntrinsics
     object_height: float = 0.0  # m above the table, measured (:func:`object_height`); 0 = unknown
+    seen_through_px: np.ndarray | None = None  # (H, W) bool, returns behind a seen object's solid, moved to where
+    #                                             their rays enter it (:func:`see_through_pixels`)
 
     @property
     def sdf(self) -> np.ndarray:
@@ -676,6 +687,55 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
             break
     out[vs, us] = placed
     return (out, tested) if return_tested else out
+
+
+def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray, depth: np.ndarray,
+                       table: TableFrame, intrinsics: CameraIntrinsics, sensor: SensorModel,
+                       slack_m: float = 0.005, max_samples: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels whose return lies behind the solid under a point seen above the table, and where their rays
+    enter that solid.
+
+    Objects on a table are height fields: under a point seen at height h the column from its foot up to it
+    is solid. The image of that column covers the pixels between the point's and its foot's; a pixel there
+    whose return is farther from the camera (optical-axis depth) than the columns over its whole 3 x 3
+    neighbourhood, by more than ``3 sqrt(2) sigma_z + slack_m``, saw *through* the object - a clear part and
+    what lies behind it (the table, or a blend of both in a stereo sensor) - not its surface. Equivalently,
+    along a ray's epipolar line the feet of a height field's visible points move away from the camera
+    monotonically; a return whose foot lies behind the foot of a point seen farther up the image breaks
+    that order. For a top-down camera a column projects onto its own pixel and nothing is flagged.
+
+    Args:
+        points: (H, W, 3) camera-frame points (m); height: (H, W) m along the table normal (NaN = none).
+        solid: (H, W) bool, pixels seen above the table whose columns are solid.
+        depth: (H, W) m optical-axis depth of each return (NaN = none).
+        slack_m: tolerance (m) on top of the noise of the two depths compared.
+        max_samples: at most this many samples per column (one per pixel of its image).
+
+    Returns:
+        ``(flagged, entry_depth)``: (H, W) bool, and (H, W) m, the depth at which each pixel's ray meets the
+        nearest column (inf where it meets none) - the farthest its first surface can be."""
+    entry = np.full(height.shape, np.inf)
+    if not solid.any():
+        return np.zeros(height.shape, dtype=bool), entry
+    top = points[solid]
+    h = np.nan_to_num(height[solid])
+    foot = top - h[:, None] * table.n
+    span = np.linalg.norm(intrinsics.project(top) - intrinsics.project(foot), axis=-1)
+    n = np.clip(np.ceil(np.nan_to_num(span)).astype(np.int64) + 1, 1, max_samples)  # samples per column
+    column = np.repeat(np.arange(top.shape[0]), n)
+    start = np.cumsum(n) - n
+    s = (np.arange(column.size) - start[column]) / n[column]  # in [0, 1): the point itself (s = 1) excluded
+    samples = foot[column] + (s * h[column])[:, None] * table.n
+    u, v, inside = intrinsics.pixel_index(samples)
+    np.minimum.at(entry, (v[inside], u[inside]), samples[inside, 2])
+    # behind the columns of the whole 3 x 3 neighbourhood: a column rounded onto the pixel beside the
+    # object's silhouette does not cover it
+    behind_all = cv2.dilate(entry.astype(np.float32), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                            borderValue=np.inf).astype(np.float64)
+    with np.errstate(invalid='ignore'):
+        tol = 3.0 * math.sqrt(2.0) * sensor.sigma(np.nan_to_num(depth, nan=0.0)) + slack_m
+        flagged = np.isfinite(depth) & np.isfinite(behind_all) & (depth - behind_all > tol)
+    return flagged, entry
 
 
 def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJECT_HEIGHT_PERCENTILE,
@@ -1535,6 +1595,23 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     # cannot tell, so it defers to depth (no evidence either way, no disagreement)
     p_c = np.where((c_ratio < dark_ratio) & (p_c < 0.5), p_d, p_c)
 
+    # 3b. seen through: a return behind the solid under a point seen above the table (a height field) passed
+    # through the object - a clear part's return of what lies behind it; its ray enters the object no later
+    # than where it meets that solid, and is placed there
+    through_px = np.zeros((h, w), dtype=bool)
+    if params.see_through_test:
+        flagged, entry = see_through_pixels(points, height, valid & (p_d > 0.5), z_mean, table, intrinsics,
+                                            params.sensor)
+        through_px = flagged & ((p_d > 0.5) | (p_c > 0.5))
+        if through_px.any():
+            z_mean = np.where(through_px, entry, z_mean)
+            points = rays * np.where(valid, z_mean, np.nan)[..., None]
+            height = np.where(valid, points @ normal + table.offset_m, np.nan)
+            z_safe = np.where(valid, z_mean, table.offset_m)
+            var_z = params.sensor.variance(z_safe) / np.maximum(count_eff, 1.0)
+            s_h = np.sqrt(var_z) * np.maximum(ray_n, 1e-3)
+            p_d = np.where(through_px, ndtr((np.nan_to_num(height) - h_thr) / s_h), p_d)
+
     # 4. inverse-variance combination, missing = object
     v_d = p_d * (1.0 - p_d) + params.depth_floor_variance
     v_c = p_c * (1.0 - p_c) + params.color_floor_variance
@@ -1736,4 +1813,4 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         depth_mask=p_d > 0.5, rgb_mask=rgb_test, missing_mask=missing_px, object_mask=target_px,
         labels_px=px_labels, occupancy_px=occ, noise_px=noise_px, disagreement_px=rho,
         bbox_px=(int(us.min()), int(vs.min()), int(us.max()), int(vs.max())), intrinsics=intrinsics,
-        object_height=object_height(height, target_px & valid & (p_d > 0.5)))
+        object_height=object_height(height, target_px & valid & (p_d > 0.5)), seen_through_px=through_px)

@@ -94,6 +94,9 @@ def test_perception_model_switches_are_segmentation_parameters():
         assert (node.params.clear_body_prism, node.params.train_clear_body) == (False, False)
         assert not node.set_parameters([Parameter('clear_body_prism', value=1.5)])[0].successful  # wrong type
         assert node.params.clear_body_prism is False
+        assert node.params.see_through_test is True is d.see_through_test
+        assert node.set_parameters([Parameter('see_through_test', value=False)])[0].successful
+        assert node.params.see_through_test is False
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)

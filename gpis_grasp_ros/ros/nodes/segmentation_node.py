@@ -178,6 +178,10 @@ class SegmentationNode(GuardedNode):
                                       'foreign no-return pixels) are not GPIS training points and count as object '
                                       '(the prior governs them); false: the previous model, only missing cells '
                                       'untrained, disagreeing cells trained and free'),
+            see_through_test=declare(self, 'see_through_test', bool(defaults.see_through_test),
+                                     'a return behind the solid under a point seen above the table (a clear part '
+                                     'seen through) is moved to where its ray enters that solid; false: kept '
+                                     'where the sensor put it'),
             clear_body_prism=declare(self, 'clear_body_prism', bool(defaults.clear_body_prism),
                                      'a clear target (under a quarter of it seen in depth) is the prism under its '
                                      'silhouette, of the height at which it is as narrow as high; false: the table '
@@ -244,7 +248,8 @@ class SegmentationNode(GuardedNode):
                                        if target in ('pixel', 'table') else None),
                          max_opening_m=float(v['max_opening']), max_tilt_deg=float(v['max_tilt_deg']),
                          chroma_z_min=float(v['chroma_z_min']), exclude_uncertain=bool(v['exclude_uncertain']),
-                         clear_body_prism=bool(v['clear_body_prism']), train_clear_body=bool(v['train_clear_body']))
+                         clear_body_prism=bool(v['clear_body_prism']), train_clear_body=bool(v['train_clear_body']),
+                         see_through_test=bool(v['see_through_test']))
         if target_needs_point(target) and len(v['target_point']) != 2:
             raise ValueError(f"target '{target}' needs target_point with 2 numbers")
         # min_frames above frames_to_average means: only complete bursts make an estimate
