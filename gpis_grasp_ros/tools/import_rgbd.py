@@ -27,6 +27,7 @@ import numpy as np
 
 from gpis_grasp_ros.core.contacts import GripperParams, bilinear
 from gpis_grasp_ros.core.noise_model import SENSOR_MODELS, SensorModel
+from gpis_grasp_ros.core.pipeline import posterior_from_grids
 from gpis_grasp_ros.core.planners import PlannerParams, execute_grasp_trials, plan
 from gpis_grasp_ros.core.sensing import SensingParams, SensingResult
 from gpis_grasp_ros.data import rgbd_import as ri
@@ -58,11 +59,19 @@ def _other_objects_xy(result: SensingResult) -> np.ndarray:
     return result.geometry.from_sensor(feet)[0]
 
 
+#: SDF noise variance (m^2) of every cell when planning on the ground truth (``oracle``): a near-certain shape
+ORACLE_NOISE_M2 = 1e-6
+
+
 def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',
-                 trials: int = 20, seed: int = 0) -> RealEvaluation:
+                 trials: int = 20, seed: int = 0, oracle: bool = False) -> RealEvaluation:
     """Segment an imported capture as segmentation_node does (one frame, ``target:=pixel``), fit the
     GPIS, plan GP-GPIS-OPT and execute it ``trials`` times on the bag's ground truth (through the
-    camera frame: plan grid → camera → ground-truth grid)."""
+    camera frame: plan grid → camera → ground-truth grid).
+
+    ``oracle``: plan on the ground truth itself instead of the perceived shape - its occupancy sampled at
+    the planning grid's cell centres (0 or 100), every cell trained with ``ORACLE_NOISE_M2`` - the best any
+    perception can give the planner at the grid's resolution. The IoUs are still the perceived ones."""
     scene = load_bag(path, frames=1)
     if scene.true_sdf is None or scene.true_geometry is None:
         raise ValueError(f'{path}: no ground truth in the bag')
@@ -70,6 +79,9 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
     posterior, result = posterior_from_scene(scene, params)
     g, tg, true_sdf = result.geometry, scene.true_geometry, scene.true_sdf.astype(np.float64)
     truth = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(g.cell_centers()))[0]) < 0
+    mean_shape = posterior.mean < 0
+    if oracle:
+        posterior = posterior_from_grids(np.where(truth, 100, 0).astype(np.int8), np.full(g.shape, ORACLE_NOISE_M2), g)
 
     def iou(a: np.ndarray) -> float:
         return float((a & truth).sum() / max((a | truth).sum(), 1))
@@ -77,7 +89,7 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
     grasp = plan('gp-gpis-opt', posterior, PlannerParams(), seed=seed)
     gripper = GripperParams().resolved(g)
     if not grasp.success:
-        return RealEvaluation(str(path), iou(result.occupancy >= 0.5), iou(posterior.mean < 0), 0, trials,
+        return RealEvaluation(str(path), iou(result.occupancy >= 0.5), iou(mean_shape), 0, trials,
                               float('nan'), float('nan'), result.objects_seen, result.table.tilt_deg, grasp.message)
     jaws = [tg.from_sensor(g.to_sensor(np.asarray(j, dtype=np.float64)))[0] for j in (grasp.jaw1, grasp.jaw2)]
     ok = execute_grasp_trials(true_sdf, tg, jaws[0], jaws[1], gripper, trials, np.random.default_rng(seed))
@@ -87,7 +99,7 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
         others = others[~on_target]
     clearance = (float(min(np.linalg.norm(others - np.asarray(j), axis=1).min() for j in (grasp.jaw1, grasp.jaw2)))
                  if len(others) else float('inf'))
-    return RealEvaluation(str(path), iou(result.occupancy >= 0.5), iou(posterior.mean < 0), int(ok), trials,
+    return RealEvaluation(str(path), iou(result.occupancy >= 0.5), iou(mean_shape), int(ok), trials,
                           float(grasp.p_f), clearance, result.objects_seen, result.table.tilt_deg, grasp.message)
 
 
@@ -117,6 +129,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         'in the bag image, GP-GPIS-OPT, simulated executions on its ground truth)')
     p.add_argument('--trials', type=int, default=20, help='--evaluate: simulated executions (default 20)')
     p.add_argument('--seed', type=int, default=0, help='--evaluate: planner and execution seed')
+    p.add_argument('--seeds', type=int, default=1,
+                   help='--evaluate: run seeds SEED ... SEED + SEEDS - 1 and print their successes and mean')
+    p.add_argument('--oracle', action='store_true',
+                   help='--evaluate: plan on the ground truth sampled at the planning grid (the best any perception '
+                        'can do at that resolution) instead of the perceived shape')
     return p.parse_args(argv)
 
 
@@ -126,15 +143,26 @@ def main(argv: list[str] | None = None) -> int:
         if not args.target_pixel:
             print('import-rgbd: error: --evaluate needs --target-pixel U V (pixels of the bag image)', file=sys.stderr)
             return 2
-        try:
-            ev = evaluate_bag(args.output, tuple(args.target_pixel), args.sensor, args.trials, args.seed)
-        except (ValueError, FileNotFoundError) as exc:
-            print(f'import-rgbd: error: {exc}', file=sys.stderr)
+        if args.seeds < 1:
+            print('import-rgbd: error: --seeds must be >= 1', file=sys.stderr)
             return 2
-        print(f'{ev.bag}: tilt {ev.tilt_deg:.1f} deg, {ev.objects_seen} object(s) seen; target occupancy IoU '
-              f'{ev.occupancy_iou:.2f}, mean-shape IoU {ev.mean_shape_iou:.2f}; GP-GPIS-OPT {ev.successes}/{ev.trials} '
-              f'in force closure on the true shape (P_F {ev.p_f:.2f}); nearest other object '
-              f'{ev.jaw_clearance_m * 1000:.0f} mm from a jaw {ev.message}')
+        evs = []
+        for seed in range(args.seed, args.seed + args.seeds):
+            try:
+                ev = evaluate_bag(args.output, tuple(args.target_pixel), args.sensor, args.trials, seed, args.oracle)
+            except (ValueError, FileNotFoundError) as exc:
+                print(f'import-rgbd: error: {exc}', file=sys.stderr)
+                return 2
+            evs.append(ev)
+            print(f'{ev.bag}{" (planned on the ground truth)" if args.oracle else ""} seed {seed}: tilt '
+                  f'{ev.tilt_deg:.1f} deg, {ev.objects_seen} object(s) seen; target occupancy IoU '
+                  f'{ev.occupancy_iou:.2f}, mean-shape IoU {ev.mean_shape_iou:.2f}; GP-GPIS-OPT {ev.successes}/'
+                  f'{ev.trials} in force closure on the true shape (P_F {ev.p_f:.2f}); nearest other object '
+                  f'{ev.jaw_clearance_m * 1000:.0f} mm from a jaw {ev.message}')
+        if len(evs) > 1:
+            wins = [e.successes for e in evs]
+            print(f'seeds {args.seed}-{args.seed + args.seeds - 1}: successes {wins}, mean {np.mean(wins):.1f} of '
+                  f'{args.trials}; P_F {min(e.p_f for e in evs):.2f}-{max(e.p_f for e in evs):.2f}')
         return 0
     try:
         if not (args.rgb and args.depth):
