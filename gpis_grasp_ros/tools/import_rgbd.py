@@ -64,18 +64,20 @@ ORACLE_NOISE_M2 = 1e-6
 
 
 def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',
-                 trials: int = 20, seed: int = 0, oracle: bool = False) -> RealEvaluation:
+                 trials: int = 20, seed: int = 0, oracle: bool = False, grid_size: int = 25) -> RealEvaluation:
     """Segment an imported capture as segmentation_node does (one frame, ``target:=pixel``), fit the
     GPIS, plan GP-GPIS-OPT and execute it ``trials`` times on the bag's ground truth (through the
     camera frame: plan grid → camera → ground-truth grid).
 
     ``oracle``: plan on the ground truth itself instead of the perceived shape - its occupancy sampled at
     the planning grid's cell centres (0 or 100), every cell trained with ``ORACLE_NOISE_M2`` - the best any
-    perception can give the planner at the grid's resolution. The IoUs are still the perceived ones."""
+    perception can give the planner at the grid's resolution. The IoUs are still the perceived ones.
+    ``grid_size``: M of the M x M planning grid (segmentation_node's ``grid_size``)."""
     scene = load_bag(path, frames=1)
     if scene.true_sdf is None or scene.true_geometry is None:
         raise ValueError(f'{path}: no ground truth in the bag')
-    params = SensingParams(sensor=SensorModel.named(sensor), target='pixel', target_point=tuple(target_px))
+    params = SensingParams(sensor=SensorModel.named(sensor), target='pixel', target_point=tuple(target_px),
+                           grid_size=int(grid_size))
     posterior, result = posterior_from_scene(scene, params)
     g, tg, true_sdf = result.geometry, scene.true_geometry, scene.true_sdf.astype(np.float64)
     truth = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(g.cell_centers()))[0]) < 0
@@ -131,6 +133,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--seed', type=int, default=0, help='--evaluate: planner and execution seed')
     p.add_argument('--seeds', type=int, default=1,
                    help='--evaluate: run seeds SEED ... SEED + SEEDS - 1 and print their successes and mean')
+    p.add_argument('--grid-size', type=int, default=25, help='--evaluate: M of the M x M planning grid (default 25)')
     p.add_argument('--oracle', action='store_true',
                    help='--evaluate: plan on the ground truth sampled at the planning grid (the best any perception '
                         'can do at that resolution) instead of the perceived shape')
@@ -149,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
         evs = []
         for seed in range(args.seed, args.seed + args.seeds):
             try:
-                ev = evaluate_bag(args.output, tuple(args.target_pixel), args.sensor, args.trials, seed, args.oracle)
+                ev = evaluate_bag(args.output, tuple(args.target_pixel), args.sensor, args.trials, seed, args.oracle,
+                                  args.grid_size)
             except (ValueError, FileNotFoundError) as exc:
                 print(f'import-rgbd: error: {exc}', file=sys.stderr)
                 return 2

@@ -229,5 +229,20 @@ def test_true_shape_maps_planning_grid_points_through_the_sensor_frame() -> None
     assert same_frame.nominal_quality(j1, j2, gripper)[1] != 'ok'
     assert truth.iou_on(plan_g, truth.values_at(plan_g.cell_centers())) == pytest.approx(1.0)
     assert truth.iou_on(plan_g, np.hypot(*(plan_g.cell_centers() - centre).T) - 0.02) > 0.9
+    # on the true 1 mm grid: the same disc's SDF interpolated from 5 mm cells; a disc 1 mm too large (area ratio
+    # (20/21)^2 = 0.907); a planning grid covering only the disc's half (the other half counts as missed)
+    d = plan_g.cell_centers() - centre
+    exact = np.hypot(d[..., 0], d[..., 1]) - 0.02
+    assert truth.iou_fine(plan_g, exact) > 0.98
+    # (bilinear interpolation of the convex distance function overestimates it: the disc comes out ~0.3 mm smaller)
+    assert truth.iou_fine(plan_g, exact - 0.001) == pytest.approx((20 / 21) ** 2, abs=0.02)
+    half = GridGeometry(centre[0] - 0.0625, centre[1], 0.005, 25, 13, z=0.8, rotation=_rot(50, 95))
+    d = half.cell_centers() - centre
+    half_mean = np.hypot(d[..., 0], d[..., 1]) - 0.02
+    assert truth.iou_on(half, half_mean) == pytest.approx(1.0)  # the cell-centre IoU sees no miss
+    # covered: the disc beyond the half grid's first row of cell centres, 2.5 mm past the centre line
+    a, r = 0.0025, 0.02
+    segment = r ** 2 * np.arccos(a / r) - a * np.sqrt(r ** 2 - a ** 2)
+    assert truth.iou_fine(half, half_mean) == pytest.approx(segment / (np.pi * r ** 2), abs=0.02)
     outline = np.concatenate(truth.outline())
     assert np.allclose(np.hypot(*(truth.to_true(outline) - [0.03, 0.0]).T), 0.02, atol=0.0015)
