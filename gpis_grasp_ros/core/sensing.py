@@ -86,7 +86,8 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    seen-through pixels' table points are the footprint swept H tan(tilt) away from the camera (a 6 cm
    bottle at 52 deg: 8 cm); the footprint is the prism's (:func:`prism_footprint`: the cells whose vertical
    segment up to H projects onto the silhouette), with H the height at which that footprint is as narrow as
-   high (:func:`clear_body_height`: a body lying on the table; an upright one gets a larger footprint). The
+   high or as deep as wide, whichever is lower (:func:`clear_body_height`: a body lying on the table, or a
+   squat round one; an upright one higher than wide gets a larger footprint). The
    grid spans that footprint; cells outside it that the target reached only through its body or holes are
    the table seen through it: free, but trained with ``disagreement_variance_m2`` (free only if the height
    prior is right); observed cells inside it are object with colour/hole evidence, trained with the same
@@ -300,10 +301,12 @@ class SensingParams:
     transparent_core_occupied: bool = False  # colour-only pixels in the target's core count as seen-through object
     train_clear_body: bool = True  # a clear body's prism cells are trained as object (SDF variance
     #                                disagreement_variance_m2), not unknown
-    see_through_test: bool = True  # depth behind a solid column of a seen object = seen through a clear part
-    #                               (see_through_pixels): such pixels are holes of the object, not its surface
+    see_through_test: bool = True  # a return behind the solid column under a point seen above the table saw
+    #                               through a clear part: moved to where its ray enters that solid
+    #                               (see_through_pixels)
     clear_body_prism: bool = True  # a clear target (mostly no depth on it): its footprint is the prism under its
-    #                               silhouette, of the height at which it is as narrow as high (clear_body_height)
+    #                               silhouette, of the height at which it is as narrow as high or as deep as
+    #                               wide, the lower (clear_body_height)
     chroma_z_min: float = 1.5  # > 0: grow the target over table-level pixels this many robust sigmas off the
     #                            table's chromaticity (a clear body seen through; chromatic_extension); 0 = off
     depth_floor_variance: float = 0.02  # trust of the depth mask in the inverse-variance weights
@@ -1180,16 +1183,26 @@ def prism_footprint(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFr
 
 def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,
                       res_m: float = PRISM_RASTER_M, iterations: int = 12) -> tuple[float, np.ndarray]:
-    """Height (m) of a clear body seen only as a silhouette (no depth on it): the prism height H at which the
-    footprint under it (:func:`prism_footprint`) is as narrow as H is high.
+    """Height (m) of a clear body seen only as a silhouette (no depth on it), and the footprint under it.
 
     Without depth, a single view fixes the footprint only given H (the silhouette's table points are the
-    footprint swept H tan(theta) away from the camera). The prior: a body lying on the table - a bottle on
-    its side, a box on its face - is about as high as its footprint's smallest width. The footprint's width
-    falls as H grows, so the fixed point is found by bisection on a ``res_m`` raster. An upright body (higher
-    than wide) gets too small an H: its footprint is then too long away from the camera (more object, not
-    less). Returns H and the footprint's raster cell centres (K, 2) in the table frame (m); (0, the
-    silhouette's table points) when it has fewer than 3 of them."""
+    footprint swept H tan(theta) away from the camera; :func:`prism_footprint` undoes the sweep). Two priors
+    each fix H:
+
+    * **lying** - a bottle on its side, a box on its face - is about as high as its footprint's smallest
+      width: the prism height at which the footprint is as narrow as it is high;
+    * **round** - an upright can, a knob, a glass - has a footprint as deep (along the camera's view, in the
+      table plane) as it is wide (across it): the height at which the footprint's two extents are equal. A
+      silhouette whose table points are already shallower than wide (a body lying across the view) has no
+      such height.
+
+    The lower of the two is taken: the one that leaves more of the footprint (a lower H sweeps less away).
+    A squat round body (a 7 cm knob, 3.5 cm high) gets the round H, a lying bar the lying one whatever its
+    direction (lying along the view its round H is far too high), and a body higher than wide (an upright
+    bottle) the lying H, too small - its footprint then reaches too far away from the camera: more object,
+    never a missing part. Both heights are found by bisection on a ``res_m`` raster. Returns H and the
+    footprint's raster cell centres (K, 2) in the table frame (m); (0, the silhouette's table points) when
+    it has fewer than 3 of them."""
     hit, ok = table.ray_intersection(intrinsics.rays()[np.asarray(silhouette, dtype=bool)])
     if ok.sum() < 3:
         return 0.0, table.to_table(hit[ok])[0]
@@ -1198,16 +1211,33 @@ def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: Cam
     nx, ny = (int(math.ceil(c)) for c in (hi - lo) / res_m)
     gx, gy = np.meshgrid(lo[0] + (np.arange(nx) + 0.5) * res_m, lo[1] + (np.arange(ny) + 0.5) * res_m)
     cells = np.stack([gx, gy], axis=-1)
+    view = xy.mean(axis=0) - table.to_table(np.zeros((1, 3)))[0][0]  # camera's foot -> body, in the table plane
+    view = view / max(float(np.linalg.norm(view)), 1e-12)
+    across = np.array([-view[1], view[0]])
 
-    def width(h: float) -> float:
-        under = prism_footprint(cells, silhouette, table, intrinsics, h)
-        return minimum_width(cells[under]) if under.sum() >= 3 else 0.0
+    def footprint(h: float) -> np.ndarray:
+        return cells[prism_footprint(cells, silhouette, table, intrinsics, h)]
 
-    low, high = 0.0, width(0.0)
-    for _ in range(iterations):
-        mid = 0.5 * (low + high)
-        low, high = (mid, high) if width(mid) >= mid else (low, mid)
-    return low, cells[prism_footprint(cells, silhouette, table, intrinsics, low)]
+    def narrow_minus_height(h: float) -> float:
+        under = footprint(h)
+        return (minimum_width(under) if under.shape[0] >= 3 else 0.0) - h
+
+    def deep_minus_wide(h: float) -> float:
+        under = footprint(h)
+        return float(np.ptp(under @ view) - np.ptp(under @ across)) if under.shape[0] >= 3 else -1.0
+
+    def bisect(f, high: float) -> float:  # the largest h in [0, high] with f(h) >= 0 (f decreasing)
+        low = 0.0
+        for _ in range(iterations):
+            mid = 0.5 * (low + high)
+            low, high = (mid, high) if f(mid) >= 0.0 else (low, mid)
+        return low
+
+    top = narrow_minus_height(0.0)  # the silhouette's own smallest width bounds both heights
+    height = bisect(narrow_minus_height, top)
+    if deep_minus_wide(0.0) > 0.0:
+        height = min(height, bisect(deep_minus_wide, top))
+    return height, footprint(height)
 
 
 def _touching_clear_parts(target_px: np.ndarray, missing: np.ndarray, depth_seen: np.ndarray, px_labels: np.ndarray,

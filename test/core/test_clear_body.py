@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from tilted_scene import Box, TiltedScene
 
-from gpis_grasp_ros.core.sensing import clear_body_height, prism_footprint
+from gpis_grasp_ros.core.sensing import clear_body_height, minimum_width, prism_footprint
 from gpis_grasp_ros.core.table_frame import TableFrame
 
 RES = 0.002
@@ -36,6 +36,10 @@ def _raster(scene: TiltedScene, table: TableFrame, silhouette: np.ndarray) -> tu
 
 def _inside(box: Box, xy: np.ndarray) -> np.ndarray:
     return (np.abs(xy[..., 0] - box.x) < box.half_x) & (np.abs(xy[..., 1] - box.y) < box.half_y)
+
+
+def _min_width(xy: np.ndarray) -> float:
+    return minimum_width(xy) if len(xy) >= 3 else 0.0
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -71,8 +75,9 @@ def test_a_lying_body_is_as_high_as_its_footprint_is_narrow(half_x, half_y):
 
 
 def test_an_upright_body_gets_more_footprint_not_less():
-    """Higher than wide (3 cm x 3 cm x 9 cm): H comes out too small, so the footprint covers the truth and
-    extends away from the camera - more object (uncertain), never a missing part."""
+    """Higher than wide (3 cm x 3 cm x 9 cm): both priors' lower H comes out too small (as narrow as high),
+    so the footprint covers the truth and extends away from the camera - more object (uncertain), never a
+    missing part."""
     box = Box(0.0, 0.0, 0.015, 0.015, 0.09)
     scene, sil, table = _scene(box, 50.0)
     height, _ = clear_body_height(sil, table, scene.intrinsics)
@@ -81,6 +86,23 @@ def test_an_upright_body_gets_more_footprint_not_less():
     truth = _inside(box, true_xy)
     under = prism_footprint(cells, sil, table, scene.intrinsics, height)
     assert (under & truth).sum() > 0.95 * truth.sum()
+
+
+@pytest.mark.parametrize('tilt', [40.0, 50.0])
+def test_a_squat_round_body_is_as_deep_as_wide(tilt):
+    """A 7 x 7 cm body 3.5 cm high (the crystal knob's proportions): as narrow as high would give ~5 cm and
+    cut its far part; as deep as wide gives H within 5 mm and the footprint within IoU 0.85."""
+    box = Box(0.0, 0.0, 0.035, 0.035, 0.035)
+    scene, sil, table = _scene(box, tilt)
+    height, _ = clear_body_height(sil, table, scene.intrinsics)
+    assert height == pytest.approx(box.height, abs=0.005)
+    cells, true_xy = _raster(scene, table, sil)
+    truth = _inside(box, true_xy)
+    assert _iou(prism_footprint(cells, sil, table, scene.intrinsics, height), truth) > 0.85
+    # the lying prior alone: the fixed point of "as narrow as high" is well above the true height
+    narrow = max(h for h in np.arange(0.0, 0.07, 0.002)
+                 if _min_width(cells[prism_footprint(cells, sil, table, scene.intrinsics, h)]) >= h)
+    assert narrow > box.height + 0.01
 
 
 def test_no_silhouette():
