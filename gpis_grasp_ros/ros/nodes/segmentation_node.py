@@ -184,7 +184,8 @@ class SegmentationNode(GuardedNode):
                                      'where the sensor put it'),
             clear_body_prism=declare(self, 'clear_body_prism', bool(defaults.clear_body_prism),
                                      'a clear target (under a quarter of it seen in depth) is the prism under its '
-                                     'silhouette, of the height at which it is as narrow as high; false: the table '
+                                     'silhouette, of the height at which it is as narrow as high or as deep as wide '
+                                     '(the lower); false: the table '
                                      'seen through it stays where its rays meet the table'),
             train_clear_body=declare(self, 'train_clear_body', bool(defaults.train_clear_body),
                                      'the clear body\'s prism cells are GPIS training points (object, SDF variance '
