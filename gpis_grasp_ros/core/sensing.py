@@ -206,6 +206,7 @@ CHROMA_SMOOTH_PX = 1.5  # Gaussian sigma (px) of the colour image before its chr
 CHROMA_DARK = 20.0  # darker pixels (mean of 0-255 RGB) have no reliable chromaticity
 CHROMA_MIN_SIGMA = 0.006  # floor of the table's chromaticity spread (a noiseless table would flag every halo)
 CHROMA_CLEAR_FRACTION = 0.5  # a target with fewer of its pixels seen in depth is clear: its body is grown
+SEE_THROUGH_CHUNK = 1 << 19  # column samples per chunk in see_through_pixels (~40 MB of temporaries)
 CLEAR_BODY_FRACTION = 0.25  # a target with fewer of its pixels seen in depth is a clear body (prism footprint)
 PRISM_STEP_M = 0.003  # height step (m) of the visual-hull test of a clear body's prism
 PRISM_RASTER_M = 0.002  # raster (m) on which a clear body's height is found
@@ -725,12 +726,18 @@ def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray
     foot = top - h[:, None] * table.n
     span = np.linalg.norm(intrinsics.project(top) - intrinsics.project(foot), axis=-1)
     n = np.clip(np.ceil(np.nan_to_num(span)).astype(np.int64) + 1, 1, max_samples)  # samples per column
-    column = np.repeat(np.arange(top.shape[0]), n)
-    start = np.cumsum(n) - n
-    s = (np.arange(column.size) - start[column]) / n[column]  # in [0, 1): the point itself (s = 1) excluded
-    samples = foot[column] + (s * h[column])[:, None] * table.n
-    u, v, inside = intrinsics.pixel_index(samples)
-    np.minimum.at(entry, (v[inside], u[inside]), samples[inside, 2])
+    ends = np.cumsum(n)
+    # columns in chunks of about SEE_THROUGH_CHUNK samples: bounded memory in a cluttered frame
+    bounds = np.searchsorted(ends, np.arange(SEE_THROUGH_CHUNK, int(ends[-1]), SEE_THROUGH_CHUNK), side='right')
+    for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, top.shape[0]], strict=True):
+        if hi <= lo:
+            continue
+        column = np.repeat(np.arange(lo, hi), n[lo:hi])
+        start = ends[column] - n[column]
+        s = (np.arange(column.size) + (ends[lo] - n[lo]) - start) / n[column]  # [0, 1): the point itself excluded
+        samples = foot[column] + (s * h[column])[:, None] * table.n
+        u, v, inside = intrinsics.pixel_index(samples)
+        np.minimum.at(entry, (v[inside], u[inside]), samples[inside, 2])
     # behind the columns of the whole 3 x 3 neighbourhood: a column rounded onto the pixel beside the
     # object's silhouette does not cover it
     behind_all = cv2.dilate(entry.astype(np.float32), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
