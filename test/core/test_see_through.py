@@ -79,7 +79,7 @@ def test_chunked_columns_give_the_same_answer(monkeypatch):
     scene = TiltedScene(50.0, boxes=[TALL, Box(0.07, 0.03, 0.015, 0.04, 0.03)])
     _, depth, _ = _clear_wall_frame(scene, TALL, 0)
     whole = _flagged(scene, depth[0])
-    monkeypatch.setattr(sensing, 'SEE_THROUGH_CHUNK', 997)  # many chunks, boundaries inside columns' runs
+    monkeypatch.setattr(sensing, 'SEE_THROUGH_CHUNK', 997)  # hundreds of chunks of whole columns
     chunked = _flagged(scene, depth[0])
     assert whole[0].sum() > 300
     assert np.array_equal(whole[0], chunked[0]) and np.array_equal(whole[1], chunked[1])
@@ -106,7 +106,7 @@ def test_a_top_down_camera_sees_every_column_end_on():
     assert clear.sum() > 500 and _flagged(scene, depth)[0].sum() == 0
 
 
-def _rows_off_the_footprint(result, scene: TiltedScene, box: Box) -> tuple[int, float]:
+def _cells_off_the_footprint(result, scene: TiltedScene, box: Box) -> tuple[int, float]:
     g = result.geometry
     xy = scene.table_xy(g.to_sensor(g.cell_centers()))
     out = np.maximum(np.abs(xy[..., 0] - box.x) - box.half_x, np.abs(xy[..., 1] - box.y) - box.half_y)
@@ -131,6 +131,6 @@ def test_segmentation_places_a_seen_through_wall_on_the_box_not_behind_it(tilt, 
     assert moved.sum() > 0.5 * wall.sum() and not off.seen_through_px.any()
     assert np.median(np.abs(on.height - true_height)[moved]) < 0.004
     assert np.median(np.abs(off.height - true_height)[moved]) > 0.02
-    beyond_on, iou_on = _rows_off_the_footprint(on, scene, box)
-    beyond_off, iou_off = _rows_off_the_footprint(off, scene, box)
+    beyond_on, iou_on = _cells_off_the_footprint(on, scene, box)
+    beyond_off, iou_off = _cells_off_the_footprint(off, scene, box)
     assert beyond_on == 0 and iou_on > 0.88 and iou_on > iou_off + 0.03  # measured 0.94 / 0.90 against 0.89 / 0.81
