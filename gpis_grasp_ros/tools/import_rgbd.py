@@ -28,7 +28,7 @@ import numpy as np
 from gpis_grasp_ros.core.contacts import GripperParams, bilinear
 from gpis_grasp_ros.core.noise_model import SENSOR_MODELS, SensorModel
 from gpis_grasp_ros.core.pipeline import posterior_from_grids
-from gpis_grasp_ros.core.planners import PlannerParams, execute_grasp_trials, plan
+from gpis_grasp_ros.core.planners import METHODS, PlannerParams, execute_grasp_trials, plan
 from gpis_grasp_ros.core.sensing import SensingParams, SensingResult
 from gpis_grasp_ros.data import rgbd_import as ri
 from gpis_grasp_ros.data.bags import load_bag, posterior_from_scene
@@ -64,10 +64,11 @@ ORACLE_NOISE_M2 = 1e-6
 
 
 def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',
-                 trials: int = 20, seed: int = 0, oracle: bool = False, grid_size: int = 25) -> RealEvaluation:
+                 trials: int = 20, seed: int = 0, oracle: bool = False, grid_size: int = 25,
+                 method: str = 'gp-gpis-opt') -> RealEvaluation:
     """Segment an imported capture as segmentation_node does (one frame, ``target:=pixel``), fit the
-    GPIS, plan GP-GPIS-OPT and execute it ``trials`` times on the bag's ground truth (through the
-    camera frame: plan grid → camera → ground-truth grid).
+    GPIS, plan GP-GPIS-OPT (or ``method``, one of :data:`~gpis_grasp_ros.core.planners.METHODS`) and execute it
+    ``trials`` times on the bag's ground truth (through the camera frame: plan grid → camera → ground-truth grid).
 
     ``oracle``: plan on the ground truth itself instead of the perceived shape - its occupancy sampled at
     the planning grid's cell centres (0 or 100), every cell trained with ``ORACLE_NOISE_M2`` - the best any
@@ -88,7 +89,7 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
     def iou(a: np.ndarray) -> float:
         return float((a & truth).sum() / max((a | truth).sum(), 1))
 
-    grasp = plan('gp-gpis-opt', posterior, PlannerParams(), seed=seed)
+    grasp = plan(method, posterior, PlannerParams(), seed=seed)
     gripper = GripperParams().resolved(g)
     if not grasp.success:
         return RealEvaluation(str(path), iou(result.occupancy >= 0.5), iou(mean_shape), 0, trials,
@@ -134,6 +135,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--seeds', type=int, default=1,
                    help='--evaluate: run seeds SEED ... SEED + SEEDS - 1 and print their successes and mean')
     p.add_argument('--grid-size', type=int, default=25, help='--evaluate: M of the M x M planning grid (default 25)')
+    p.add_argument('--method', default='gp-gpis-opt', choices=METHODS,
+                   help='--evaluate: planner (default gp-gpis-opt, as planner_node)')
     p.add_argument('--oracle', action='store_true',
                    help='--evaluate: plan on the ground truth sampled at the planning grid (the best any perception '
                         'can do at that resolution) instead of the perceived shape')
@@ -153,14 +156,14 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.seed, args.seed + args.seeds):
             try:
                 ev = evaluate_bag(args.output, tuple(args.target_pixel), args.sensor, args.trials, seed, args.oracle,
-                                  args.grid_size)
+                                  args.grid_size, args.method)
             except (ValueError, FileNotFoundError) as exc:
                 print(f'import-rgbd: error: {exc}', file=sys.stderr)
                 return 2
             evs.append(ev)
             print(f'{ev.bag}{" (planned on the ground truth)" if args.oracle else ""} seed {seed}: tilt '
                   f'{ev.tilt_deg:.1f} deg, {ev.objects_seen} object(s) seen; target occupancy IoU '
-                  f'{ev.occupancy_iou:.2f}, mean-shape IoU {ev.mean_shape_iou:.2f}; GP-GPIS-OPT {ev.successes}/'
+                  f'{ev.occupancy_iou:.2f}, mean-shape IoU {ev.mean_shape_iou:.2f}; {args.method} {ev.successes}/'
                   f'{ev.trials} in force closure on the true shape (P_F {ev.p_f:.2f}); nearest other object '
                   f'{ev.jaw_clearance_m * 1000:.0f} mm from a jaw {ev.message}')
         if len(evs) > 1:

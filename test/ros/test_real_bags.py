@@ -97,7 +97,7 @@ def test_real_bottle_plan_and_simulated_executions():
     assert evaluate_bag(BOTTLE, TARGETS[BOTTLE], trials=20, seed=0, oracle=True).p_f > 0.9
 
 
-def test_evaluate_command_runs_seeds_and_the_oracle(capsys):
+def test_evaluate_command_runs_seeds_the_oracle_and_other_planners(capsys):
     u, v = TARGETS[BOTTLE]
     args = [str(BOTTLE), '--evaluate', '--target-pixel', str(u), str(v), '--trials', '5', '--seed', '3']
     assert main(args + ['--seeds', '2', '--oracle']) == 0
@@ -108,6 +108,9 @@ def test_evaluate_command_runs_seeds_and_the_oracle(capsys):
     assert out[-1].startswith('seeds 3-4: successes [') and 'of 5; P_F' in out[-1]
     assert main(args + ['--seeds', '0']) == 2
     assert 'seeds must be >= 1' in capsys.readouterr().err
+    assert main(args + ['--method', 'gp-m']) == 0
+    out = capsys.readouterr().out
+    assert '; gp-m ' in out and '/5 in force closure on the true shape' in out
 
 
 def test_real_flower_box_is_split_from_the_notebook_it_touches():
