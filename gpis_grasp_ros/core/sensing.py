@@ -1609,8 +1609,19 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     points = rays * np.where(valid, z_mean, np.nan)[..., None]
     table = _table_frame(points, valid, params)
     normal = table.n
-    height = np.where(valid, points @ normal + table.offset_m, np.nan)
-    z_safe = np.where(valid, z_mean, table.offset_m)
+    ray_n = np.abs(rays @ normal)  # height error per unit depth error along the ray
+
+    def measured(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Camera points, heights above the plane (NaN where no return), depths with the plane's offset where
+        none, their averaged variance and the height noise s_h of depths ``z`` (m) - for the frames' returns,
+        and again after the see-through test moved some."""
+        pts = rays * np.where(valid, z, np.nan)[..., None]
+        z_ok = np.where(valid, z, table.offset_m)
+        var = params.sensor.variance(z_ok) / np.maximum(count_eff, 1.0)
+        return (pts, np.where(valid, pts @ normal + table.offset_m, np.nan), z_ok, var,
+                np.sqrt(var) * np.maximum(ray_n, 1e-3))
+
+    points, height, z_safe, var_z, s_h = measured(z_mean)
     band = np.maximum(params.plane_band_floor_m, params.plane_band_sigmas * params.sensor.sigma(z_safe))
     inlier = valid & (np.abs(np.nan_to_num(height, nan=1.0)) <= band)
     if inlier.sum() < 20:
@@ -1620,9 +1631,6 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     h_thr = max(params.height_threshold, 2.0 * rms)
 
     # 3. soft depth and colour evidence (the colour test ignores shadows)
-    var_z = params.sensor.variance(z_safe) / np.maximum(count_eff, 1.0)
-    ray_n = np.abs(rays @ normal)  # height error per unit depth error along the ray
-    s_h = np.sqrt(var_z) * np.maximum(ray_n, 1e-3)
     p_d = np.where(valid, ndtr((np.nan_to_num(height) - h_thr) / s_h), 0.0)
     colour, p_c, c_ratio = _colour_evidence(rgb_mean, inlier, missing_px, params)
     table_rgb, c_thr, dark_ratio = colour.table_rgb, colour.threshold, colour.dark_ratio
@@ -1642,11 +1650,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         through_px = flagged & ((p_d > 0.5) | (p_c > 0.5))
         if through_px.any():
             z_mean = np.where(through_px, entry, z_mean)
-            points = rays * np.where(valid, z_mean, np.nan)[..., None]
-            height = np.where(valid, points @ normal + table.offset_m, np.nan)
-            z_safe = np.where(valid, z_mean, table.offset_m)
-            var_z = params.sensor.variance(z_safe) / np.maximum(count_eff, 1.0)
-            s_h = np.sqrt(var_z) * np.maximum(ray_n, 1e-3)
+            points, height, z_safe, var_z, s_h = measured(z_mean)
             p_d = np.where(through_px, ndtr((np.nan_to_num(height) - h_thr) / s_h), p_d)
 
     # 4. inverse-variance combination, missing = object

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,6 +75,14 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
     the planning grid's cell centres (0 or 100), every cell trained with ``ORACLE_NOISE_M2`` - the best any
     perception can give the planner at the grid's resolution. The IoUs are still the perceived ones.
     ``grid_size``: M of the M x M planning grid (segmentation_node's ``grid_size``)."""
+    return evaluate_seeds(path, target_px, [seed], sensor, trials, oracle, grid_size, method)[0]
+
+
+def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequence[int],
+                   sensor: str = 'realsense_d400', trials: int = 20, oracle: bool = False, grid_size: int = 25,
+                   method: str = 'gp-gpis-opt') -> list[RealEvaluation]:
+    """:func:`evaluate_bag` for each planner and execution seed of ``seeds``: the capture is segmented and the
+    GPIS fitted once."""
     scene = load_bag(path, frames=1)
     if scene.true_sdf is None or scene.true_geometry is None:
         raise ValueError(f'{path}: no ground truth in the bag')
@@ -89,21 +98,26 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
     def iou(a: np.ndarray) -> float:
         return float((a & truth).sum() / max((a | truth).sum(), 1))
 
-    grasp = plan(method, posterior, PlannerParams(), seed=seed)
+    occupancy_iou, mean_shape_iou = iou(result.occupancy >= 0.5), iou(mean_shape)
     gripper = GripperParams().resolved(g)
-    if not grasp.success:
-        return RealEvaluation(str(path), iou(result.occupancy >= 0.5), iou(mean_shape), 0, trials,
-                              float('nan'), float('nan'), result.objects_seen, result.table.tilt_deg, grasp.message)
-    jaws = [tg.from_sensor(g.to_sensor(np.asarray(j, dtype=np.float64)))[0] for j in (grasp.jaw1, grasp.jaw2)]
-    ok = execute_grasp_trials(true_sdf, tg, jaws[0], jaws[1], gripper, trials, np.random.default_rng(seed))
     others = _other_objects_xy(result)  # other objects seen, minus fragments of the true target (1 cm)
     if len(others):
         on_target = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(others))[0]) < 0.01
         others = others[~on_target]
-    clearance = (float(min(np.linalg.norm(others - np.asarray(j), axis=1).min() for j in (grasp.jaw1, grasp.jaw2)))
-                 if len(others) else float('inf'))
-    return RealEvaluation(str(path), iou(result.occupancy >= 0.5), iou(mean_shape), int(ok), trials,
-                          float(grasp.p_f), clearance, result.objects_seen, result.table.tilt_deg, grasp.message)
+    out = []
+    for seed in seeds:
+        grasp = plan(method, posterior, PlannerParams(), seed=seed)
+        if not grasp.success:
+            out.append(RealEvaluation(str(path), occupancy_iou, mean_shape_iou, 0, trials, float('nan'), float('nan'),
+                                      result.objects_seen, result.table.tilt_deg, grasp.message))
+            continue
+        jaws = [tg.from_sensor(g.to_sensor(np.asarray(j, dtype=np.float64)))[0] for j in (grasp.jaw1, grasp.jaw2)]
+        ok = execute_grasp_trials(true_sdf, tg, jaws[0], jaws[1], gripper, trials, np.random.default_rng(seed))
+        clearance = (float(min(np.linalg.norm(others - np.asarray(j), axis=1).min() for j in (grasp.jaw1, grasp.jaw2)))
+                     if len(others) else float('inf'))
+        out.append(RealEvaluation(str(path), occupancy_iou, mean_shape_iou, int(ok), trials, float(grasp.p_f),
+                                  clearance, result.objects_seen, result.table.tilt_deg, grasp.message))
+    return out
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -152,15 +166,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.seeds < 1:
             print('import-rgbd: error: --seeds must be >= 1', file=sys.stderr)
             return 2
-        evs = []
-        for seed in range(args.seed, args.seed + args.seeds):
-            try:
-                ev = evaluate_bag(args.output, tuple(args.target_pixel), args.sensor, args.trials, seed, args.oracle,
-                                  args.grid_size, args.method)
-            except (ValueError, FileNotFoundError) as exc:
-                print(f'import-rgbd: error: {exc}', file=sys.stderr)
-                return 2
-            evs.append(ev)
+        seeds = range(args.seed, args.seed + args.seeds)
+        try:
+            evs = evaluate_seeds(args.output, tuple(args.target_pixel), seeds, args.sensor, args.trials, args.oracle,
+                                 args.grid_size, args.method)
+        except (ValueError, FileNotFoundError) as exc:
+            print(f'import-rgbd: error: {exc}', file=sys.stderr)
+            return 2
+        for seed, ev in zip(seeds, evs, strict=True):
             print(f'{ev.bag}{" (planned on the ground truth)" if args.oracle else ""} seed {seed}: tilt '
                   f'{ev.tilt_deg:.1f} deg, {ev.objects_seen} object(s) seen; target occupancy IoU '
                   f'{ev.occupancy_iou:.2f}, mean-shape IoU {ev.mean_shape_iou:.2f}; {args.method} {ev.successes}/'
