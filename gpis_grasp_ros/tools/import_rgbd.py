@@ -202,13 +202,16 @@ def main(argv: list[str] | None = None) -> int:
             extra['true_depth'] = ri.load_depth(args.gt_depth, args.depth_scale)
             if extra['mask'].shape != capture.depth.shape or extra['true_depth'].shape != capture.depth.shape:
                 raise ValueError('--gt-mask and --gt-depth must have the size of the capture')
-        small, extra = ri.crop_and_scale(capture, tuple(args.crop) if args.crop else None, args.scale, extra)
+        crop = tuple(args.crop) if args.crop else None
+        small, _ = ri.crop_and_scale(capture, crop, args.scale)
         truth, target = None, None
         if args.target_pixel:
-            target = ri.map_pixel(*args.target_pixel, tuple(args.crop) if args.crop else None, args.scale)
+            target = ri.map_pixel(*args.target_pixel, crop, args.scale)
             table = ri.capture_table(small, SensorModel.named(args.sensor))
-            truth = ri.ground_truth_from_mask(small, extra['mask'], extra['true_depth'], target, table,
-                                              frame_id=args.frame_id)
+            # the ground truth keeps the full resolution: only the crop applies to it (module docstring)
+            full, extra = ri.crop_and_scale(capture, crop, 1.0, extra)
+            truth = ri.ground_truth_from_mask(full, extra['mask'], extra['true_depth'], ri.map_pixel(*args.target_pixel,
+                                              crop, 1.0), table, frame_id=args.frame_id)
         meta = {'rgb': str(args.rgb), 'depth': str(args.depth), 'crop': args.crop, 'scale': args.scale,
                 'target_pixel': None if target is None else [round(target[0], 2), round(target[1], 2)],
                 'sensor': args.sensor}

@@ -20,7 +20,8 @@ TABLE_RGB = np.array([150.0, 140.0, 120.0])
 
 @dataclass
 class Box:
-    """Axis-aligned box on the table: centre (x, y) and half sizes in the true table frame (m), height (m)."""
+    """Box on the table: centre (x, y) and half sizes in the true table frame (m), height (m), turned by
+    ``yaw_deg`` about the table normal (0: edges along the table frame's axes)."""
 
     x: float
     y: float
@@ -28,6 +29,13 @@ class Box:
     half_y: float
     height: float
     rgb: tuple[float, float, float] = (40.0, 90.0, 200.0)
+    yaw_deg: float = 0.0
+
+    def contains(self, xy: np.ndarray) -> np.ndarray:
+        """Whether true table points (x, y) (relative to the optical axis' foot) lie in the box's footprint."""
+        c, s = np.cos(np.radians(self.yaw_deg)), np.sin(np.radians(self.yaw_deg))
+        dx, dy = xy[..., 0] - self.x, xy[..., 1] - self.y
+        return (np.abs(c * dx + s * dy) < self.half_x) & (np.abs(-s * dx + c * dy) < self.half_y)
 
 
 @dataclass
@@ -89,11 +97,16 @@ class TiltedScene:
         label = np.zeros(u.shape, dtype=np.int64)
         ox, oy = self.origin_xy
         for k, b in enumerate(self.boxes, start=1):
+            centre = np.array([ox + b.x, oy + b.y, 0.0])
+            c, s = np.cos(np.radians(b.yaw_deg)), np.sin(np.radians(b.yaw_deg))
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # box frame -> table frame
+            start = centre - centre @ rot  # the camera (table-frame origin) in the box's frame: R^T (0 - c) + c
+            direction = local @ rot
             lo = np.array([ox + b.x - b.half_x, oy + b.y - b.half_y, d - b.height])
             hi = np.array([ox + b.x + b.half_x, oy + b.y + b.half_y, d])
             with np.errstate(divide='ignore', invalid='ignore'):
-                t1 = lo / local
-                t2 = hi / local
+                t1 = (lo - start) / direction
+                t2 = (hi - start) / direction
             t_near = np.nanmax(np.minimum(t1, t2), axis=-1)
             t_far = np.nanmin(np.maximum(t1, t2), axis=-1)
             hit = (t_near <= t_far) & (t_near > 0) & (t_near < t_best)

@@ -158,3 +158,45 @@ def test_cli_writes_a_one_frame_bag_in_the_shipped_layout(capture_files, tmp_pat
     no_intrinsics = ['--rgb', str(out / 'rgb.png'), '--depth', str(out / 'depth.png'), str(tmp_path / 'x')]
     assert import_rgbd.main(no_intrinsics) == 2
     assert import_rgbd.main(argv[:6] + [str(tmp_path / 'y.mcap'), '--gt-mask', str(out / 'mask.png')]) == 2
+
+
+def test_cli_ground_truth_keeps_the_full_resolution_of_a_scaled_capture(tmp_path):
+    """``--scale 0.5`` shrinks the bag's images, not its ground truth: the truth of a box turned 30 deg on the
+    table, seen at 45 deg, matches the box (IoU > 0.94, 90th percentile of the boundary normals' error < 22 deg,
+    corners excepted). Built from the halved mask instead (every other pixel), it measured 0.90 and 30 deg."""
+    box = Box(0.0, 0.0, 0.035, 0.02, 0.04, yaw_deg=30.0)
+    scene = TiltedScene(45.0, distance_m=0.6, boxes=[box], width=480, height=360, focal_px=450.0)
+    depth, rgb, label = scene.render()
+    depth_mm = np.where(np.isfinite(depth), np.round(depth * 1000), 0).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / 'rgb.png'), rgb.astype(np.uint8)[..., ::-1])
+    cv2.imwrite(str(tmp_path / 'depth.png'), depth_mm)
+    cv2.imwrite(str(tmp_path / 'mask.png'), np.where(label == 1, 255, 0).astype(np.uint8))
+    i = scene.intrinsics
+    (tmp_path / 'cam.yaml').write_text(yaml.safe_dump({'fx': i.fx, 'fy': i.fy, 'cx': i.cx, 'cy': i.cy,
+                                                       'width': i.width, 'height': i.height}))
+    v, u = np.nonzero(label == 1)
+    bag = tmp_path / 'scaled.mcap'
+    assert import_rgbd.main(['--rgb', str(tmp_path / 'rgb.png'), '--depth', str(tmp_path / 'depth.png'),
+                             '--intrinsics', str(tmp_path / 'cam.yaml'), str(bag), '--scale', '0.5',
+                             '--gt-mask', str(tmp_path / 'mask.png'), '--gt-depth', str(tmp_path / 'depth.png'),
+                             '--target-pixel', str(u.mean()), str(v.mean())]) == 0
+    loaded = load_bag(bag)
+    assert loaded.depth_frames.shape == (1, 180, 240)
+    sdf, g = loaded.true_sdf.astype(np.float64), loaded.true_geometry
+    xy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    c, s = np.cos(np.radians(box.yaw_deg)), np.sin(np.radians(box.yaw_deg))
+    local = np.stack([c * (xy[..., 0] - box.x) + s * (xy[..., 1] - box.y),
+                      -s * (xy[..., 0] - box.x) + c * (xy[..., 1] - box.y)], axis=-1)
+    q = np.abs(local) - (box.half_x, box.half_y)
+    box_sdf = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+
+    def normals(f: np.ndarray) -> np.ndarray:
+        gy, gx = np.gradient(f)
+        n = np.stack([gx, gy], axis=-1)
+        return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+
+    edge = (np.abs(sdf) < 0.001) & (np.linalg.norm(q, axis=-1) > 0.006)  # on the boundary, off the corners
+    error_deg = np.degrees(np.arccos(np.clip((normals(sdf) * normals(box_sdf)).sum(axis=-1), -1.0, 1.0)))[edge]
+    assert edge.sum() > 300
+    assert np.percentile(error_deg, 90) < 22.0
+    assert ((sdf < 0) & (box_sdf < 0)).sum() / ((sdf < 0) | (box_sdf < 0)).sum() > 0.94

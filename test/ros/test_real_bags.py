@@ -5,10 +5,11 @@ Head-camera-like views (44-52 degrees) of transparent objects among others. What
 the table plane and the grid pose, the isolation of the target from its neighbours (a box split
 from the notebook it touches), the planner and gripper simulation on the imported ground truth, and
 the node's behaviour (grids published in the table plane, or a latched reason when the target
-cannot be isolated). The clear bottle's occupancy IoU meets the issue's 0.5; its grasp target (>= 14 of 20
-simulated executions in force closure on the true shape) is met by 6 of 10 planner seeds (README: 1-17 of 20
-over seeds 0-9, 16 with seed 0), and the flower box misses both; the figures asserted are those achieved, with
-margin, averaged over seeds where a single seed's grasp is too brittle to assert.
+cannot be isolated). The clear bottle meets the issue's occupancy IoU (0.5) and grasp target (>= 14 of 20
+simulated executions in force closure on the true shape; README: mean 16.9 of 20 over planner seeds 0-9); the
+flower box meets the occupancy target but not the grasp target (README: mean 9.4), which its truth sampled at the
+planning grid allows (planned on it: 16.8). The figures asserted are those achieved, with margin, averaged over
+seeds where a single seed's grasp is too brittle to assert.
 """
 
 from __future__ import annotations
@@ -86,9 +87,9 @@ def test_real_bottle_plan_and_simulated_executions():
     evs = evaluate_seeds(BOTTLE, TARGETS[BOTTLE], range(3), trials=20)
     ev = evs[0]
     assert ev.trials == 20 and all(0 <= e.successes <= 20 for e in evs)
-    assert 0.5 <= ev.occupancy_iou <= 1.0  # README: 0.58 (0.35 without the clear body's prism)
+    assert 0.5 <= ev.occupancy_iou <= 1.0  # README: 0.60 (0.35 without the clear body's prism)
     assert ev.mean_shape_iou > 0.3  # README: 0.46
-    # README: 16, 20, 16 of 20 for seeds 0-2 (0, 0, 0 without the prism; 16, 16, 15 before the see-through test);
+    # README: 18, 18, 18 of 20 for seeds 0-2 (0, 0, 0 without the prism; 16, 16, 15 before the see-through test);
     # P_F 0.58-0.64 (0.80-0.88 while the table seen through the body was trained as confidently free)
     assert np.mean([e.successes for e in evs]) >= 14
     assert all(0.5 < e.p_f < 0.75 for e in evs)
@@ -116,7 +117,7 @@ def test_evaluate_command_runs_seeds_the_oracle_and_other_planners(capsys):
 def test_real_flower_box_is_split_from_the_notebook_it_touches():
     """The clear box stands against the notebook, whose evidence reaches the image border: the flat
     notebook (12-16 mm) and the taller box are split in the table raster, so the box is a target of
-    its own (README: occupancy IoU 0.54, grasp target missed) while the notebook itself is still refused
+    its own (README: occupancy IoU 0.55, grasp target missed) while the notebook itself is still refused
     as cut by the border. Its lower face, through which the D435 returns the table 2-5 cm behind it, is
     moved onto the box (see_through_test)."""
     scene = load_bag(FLOWER, frames=1)
@@ -139,9 +140,13 @@ def test_real_flower_box_is_split_from_the_notebook_it_touches():
     assert np.nanmedian(result.height[moved]) > np.nanmedian(off.height[moved]) + 0.02  # lifted onto the box
     evs = evaluate_seeds(FLOWER, TARGETS[FLOWER], range(3), trials=20)
     assert evs[0].occupancy_iou > 0.5 and all(e.jaw_clearance_m > 0.005 for e in evs)  # no jaw on another object
-    # README: 0.54 (0.47 without the see-through test); 4, 4, 7 of 20 for seeds 0-2 (3, 0, 0 before the
-    # tilted-camera footprint changes)
-    assert np.mean([e.successes for e in evs]) >= 3
+    # README: 0.55 (0.47 without the see-through test); 8, 14, 9 of 20 for seeds 0-2 (3, 0, 0 before the
+    # tilted-camera footprint changes; 4, 4, 7 on the ground truth built from the halved mask)
+    assert np.mean([e.successes for e in evs]) >= 7
+    # planned on its truth sampled at the planning grid, the grasp target is within reach (README: 19, 20, 20;
+    # 12, 7, 5 on the ground truth built from the halved mask, whose stair-step normals made executions slip)
+    oracle = evaluate_seeds(FLOWER, TARGETS[FLOWER], range(3), trials=20, oracle=True)
+    assert np.mean([e.successes for e in oracle]) >= 16
 
 
 def _cloud(path: Path, stamp_ns: int) -> PointCloud2:
