@@ -87,7 +87,8 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    bottle at 52 deg: 8 cm); the footprint is the prism's (:func:`prism_footprint`: the cells whose vertical
    segment up to H projects onto the silhouette), with H the height at which that footprint is as narrow as
    high or as deep as wide, whichever is lower (:func:`clear_body_height`: a body lying on the table, or a
-   squat round one; an upright one higher than wide gets a larger footprint). The
+   squat round one; an upright one higher than wide gets a larger footprint; ``clear_body_height_m`` > 0:
+   a known height instead). The
    grid spans that footprint; cells outside it that the target reached only through its body or holes are
    the table seen through it: free, but trained with ``disagreement_variance_m2`` (free only if the height
    prior is right); observed cells inside it are object with colour/hole evidence, trained with the same
@@ -308,6 +309,7 @@ class SensingParams:
     clear_body_prism: bool = True  # a clear target (mostly no depth on it): its footprint is the prism under its
     #                               silhouette, of the height at which it is as narrow as high or as deep as
     #                               wide, the lower (clear_body_height)
+    clear_body_height_m: float = 0.0  # > 0: the clear body's known height (m), instead of those two priors
     chroma_z_min: float = 1.5  # > 0: grow the target over table-level pixels this many robust sigmas off the
     #                            table's chromaticity (a clear body seen through; chromatic_extension); 0 = off
     depth_floor_variance: float = 0.02  # trust of the depth mask in the inverse-variance weights
@@ -359,6 +361,9 @@ class SensingParams:
             raise ValueError(f'max_tilt_deg must be in (0, 90), got {self.max_tilt_deg}')
         if self.max_opening_m < 0 or self.propagation_radius_m <= 0 or self.target_tolerance_m < 0:
             raise ValueError('max_opening_m and target_tolerance_m must be >= 0, propagation_radius_m > 0')
+        if not 0.0 <= self.clear_body_height_m <= self.max_object_height_m:
+            raise ValueError(f'clear_body_height_m must be in [0, max_object_height_m = {self.max_object_height_m}] '
+                             f'(0 = from the priors), got {self.clear_body_height_m}')
 
 
 @dataclass
@@ -1189,7 +1194,8 @@ def prism_footprint(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFr
 
 
 def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,
-                      res_m: float = PRISM_RASTER_M, iterations: int = 12) -> tuple[float, np.ndarray]:
+                      res_m: float = PRISM_RASTER_M, iterations: int = 12,
+                      known_height_m: float = 0.0) -> tuple[float, np.ndarray]:
     """Height (m) of a clear body seen only as a silhouette (no depth on it), and the footprint under it.
 
     Without depth, a single view fixes the footprint only given H (the silhouette's table points are the
@@ -1209,7 +1215,13 @@ def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: Cam
     bottle) the lying H, too small - its footprint then reaches too far away from the camera: more object,
     never a missing part. Both heights are found by bisection on a ``res_m`` raster. Returns H and the
     footprint's raster cell centres (K, 2) in the table frame (m); (0, the silhouette's table points) when
-    it has fewer than 3 of them."""
+    it has fewer than 3 of them. ``known_height_m`` > 0 (the body's height known, e.g. from a catalogue of the
+    objects): no prior, the footprint under a prism of that height.
+
+    The priors assume vertical walls. A round body lying on the table (a bottle) leaves the silhouette of a
+    box lower by a factor cos a + sin a (a: the rays' angle from the vertical across its axis; 1.4 at 45-52
+    deg), so the lying prior puts it that much too low and its footprint H tan(a) / 2 too far from the
+    camera. One view of a clear body does not tell the two apart."""
     hit, ok = table.ray_intersection(intrinsics.rays()[np.asarray(silhouette, dtype=bool)])
     if ok.sum() < 3:
         return 0.0, table.to_table(hit[ok])[0]
@@ -1240,6 +1252,8 @@ def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: Cam
             low, high = (mid, high) if f(mid) >= 0.0 else (low, mid)
         return low
 
+    if known_height_m > 0:
+        return float(known_height_m), footprint(float(known_height_m))
     top = narrow_minus_height(0.0)  # the silhouette's own smallest width bounds both heights
     height = bisect(narrow_minus_height, top)
     if deep_minus_wide(0.0) > 0.0:
@@ -1728,7 +1742,8 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (CHROMA_CORE_PX, CHROMA_CORE_PX))
         target_px = _filled(cv2.morphologyEx(whole.astype(np.uint8), cv2.MORPH_CLOSE, disc)) & (valid | missing_px) \
             & np.isfinite(foot_xy).all(axis=-1)
-        body_height, body_xy = clear_body_height(target_px, table, intrinsics)
+        body_height, body_xy = clear_body_height(target_px, table, intrinsics,
+                                                 known_height_m=params.clear_body_height_m)
         if body_xy.shape[0] >= 3:  # the grid spans the body's footprint, not the table seen through it
             target_xy = body_xy
     elif off_hull.any():

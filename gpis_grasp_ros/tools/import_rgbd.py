@@ -66,7 +66,7 @@ ORACLE_NOISE_M2 = 1e-6
 
 def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',
                  trials: int = 20, seed: int = 0, oracle: bool = False, grid_size: int = 25,
-                 method: str = 'gp-gpis-opt') -> RealEvaluation:
+                 method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0) -> RealEvaluation:
     """Segment an imported capture as segmentation_node does (one frame, ``target:=pixel``), fit the
     GPIS, plan GP-GPIS-OPT (or ``method``, one of :data:`~gpis_grasp_ros.core.planners.METHODS`) and execute it
     ``trials`` times on the bag's ground truth (through the camera frame: plan grid → camera → ground-truth grid).
@@ -74,20 +74,21 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
     ``oracle``: plan on the ground truth itself instead of the perceived shape - its occupancy sampled at
     the planning grid's cell centres (0 or 100), every cell trained with ``ORACLE_NOISE_M2`` - the best any
     perception can give the planner at the grid's resolution. The IoUs are still the perceived ones.
-    ``grid_size``: M of the M x M planning grid (segmentation_node's ``grid_size``)."""
-    return evaluate_seeds(path, target_px, [seed], sensor, trials, oracle, grid_size, method)[0]
+    ``grid_size``: M of the M x M planning grid (segmentation_node's ``grid_size``); ``clear_body_height_m``: a
+    clear target body's known height (m; segmentation_node's ``clear_body_height``, 0 = the priors)."""
+    return evaluate_seeds(path, target_px, [seed], sensor, trials, oracle, grid_size, method, clear_body_height_m)[0]
 
 
 def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequence[int],
                    sensor: str = 'realsense_d400', trials: int = 20, oracle: bool = False, grid_size: int = 25,
-                   method: str = 'gp-gpis-opt') -> list[RealEvaluation]:
+                   method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0) -> list[RealEvaluation]:
     """:func:`evaluate_bag` for each planner and execution seed of ``seeds``: the capture is segmented and the
     GPIS fitted once."""
     scene = load_bag(path, frames=1)
     if scene.true_sdf is None or scene.true_geometry is None:
         raise ValueError(f'{path}: no ground truth in the bag')
     params = SensingParams(sensor=SensorModel.named(sensor), target='pixel', target_point=tuple(target_px),
-                           grid_size=int(grid_size))
+                           grid_size=int(grid_size), clear_body_height_m=float(clear_body_height_m))
     posterior, result = posterior_from_scene(scene, params)
     g, tg, true_sdf = result.geometry, scene.true_geometry, scene.true_sdf.astype(np.float64)
     truth = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(g.cell_centers()))[0]) < 0
@@ -151,6 +152,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--grid-size', type=int, default=25, help='--evaluate: M of the M x M planning grid (default 25)')
     p.add_argument('--method', default='gp-gpis-opt', choices=METHODS,
                    help='--evaluate: planner (default gp-gpis-opt, as planner_node)')
+    p.add_argument('--clear-body-height', type=float, default=0.0, metavar='M',
+                   help='--evaluate: a clear target body\'s known height in m (segmentation_node\'s '
+                        'clear_body_height; default 0 = the priors)')
     p.add_argument('--oracle', action='store_true',
                    help='--evaluate: plan on the ground truth sampled at the planning grid (the best any perception '
                         'can do at that resolution) instead of the perceived shape')
@@ -169,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
         seeds = range(args.seed, args.seed + args.seeds)
         try:
             evs = evaluate_seeds(args.output, tuple(args.target_pixel), seeds, args.sensor, args.trials, args.oracle,
-                                 args.grid_size, args.method)
+                                 args.grid_size, args.method, args.clear_body_height)
         except (ValueError, FileNotFoundError) as exc:
             print(f'import-rgbd: error: {exc}', file=sys.stderr)
             return 2

@@ -110,3 +110,21 @@ def test_no_silhouette():
     table = TableFrame.from_plane(*scene.normal, scene.offset)
     height, xy = clear_body_height(np.zeros((scene.height, scene.width), bool), table, scene.intrinsics)
     assert height == 0.0 and xy.shape == (0, 2)
+
+
+def test_a_known_height_replaces_the_priors():
+    """An upright 3 x 3 x 9 cm body: the priors' height comes out far too low and the footprint sweeps away
+    from the camera (IoU < 0.5); given its height (``known_height_m``, segmentation's ``clear_body_height_m``)
+    the footprint is the prism's under the silhouette at that height (IoU > 0.8)."""
+    box = Box(0.0, 0.0, 0.015, 0.015, 0.09)
+    scene, sil, table = _scene(box, 50.0)
+    cells, true_xy = _raster(scene, table, sil)
+    truth = _inside(box, true_xy)
+    prior, _ = clear_body_height(sil, table, scene.intrinsics)
+    height, body_xy = clear_body_height(sil, table, scene.intrinsics, known_height_m=box.height)
+    assert height == box.height and prior < 0.05
+    assert _iou(prism_footprint(cells, sil, table, scene.intrinsics, prior), truth) < 0.5
+    under = prism_footprint(cells, sil, table, scene.intrinsics, height)
+    assert _iou(under, truth) > 0.8
+    inside = _inside(box, scene.table_xy(table.to_camera(body_xy)))  # the footprint returned is that prism's
+    assert inside.mean() > 0.8 and len(body_xy) == pytest.approx(under.sum(), rel=0.25)

@@ -97,6 +97,12 @@ def test_perception_model_switches_are_segmentation_parameters():
         assert node.params.see_through_test is True is d.see_through_test
         assert node.set_parameters([Parameter('see_through_test', value=False)])[0].successful
         assert node.params.see_through_test is False
+        assert node.params.clear_body_height_m == 0.0 == d.clear_body_height_m  # the priors
+        assert node.set_parameters([Parameter('clear_body_height', value=0.061)])[0].successful
+        assert node.params.clear_body_height_m == 0.061
+        for bad in (-0.01, 0.5):  # below 0, above max_object_height_m
+            assert not node.set_parameters([Parameter('clear_body_height', value=bad)])[0].successful
+        assert node.params.clear_body_height_m == 0.061
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)

@@ -187,6 +187,11 @@ class SegmentationNode(GuardedNode):
                                      'silhouette, of the height at which it is as narrow as high or as deep as wide '
                                      '(the lower); false: the table '
                                      'seen through it stays where its rays meet the table'),
+            clear_body_height_m=declare(self, 'clear_body_height', float(defaults.clear_body_height_m),
+                                        'known height (m) of a clear target body, e.g. from a catalogue of the '
+                                        'objects, instead of the priors (0 = the priors; they assume vertical walls '
+                                        'and put a round body lying on the table, a bottle, too low)',
+                                        low=0.0, high=float(defaults.max_object_height_m)),
             train_clear_body=declare(self, 'train_clear_body', bool(defaults.train_clear_body),
                                      'the clear body\'s prism cells are GPIS training points (object, SDF variance '
                                      'of full disagreement); false: unknown cells, the prior governs them'),
@@ -250,6 +255,7 @@ class SegmentationNode(GuardedNode):
                          max_opening_m=float(v['max_opening']), max_tilt_deg=float(v['max_tilt_deg']),
                          chroma_z_min=float(v['chroma_z_min']), exclude_uncertain=bool(v['exclude_uncertain']),
                          clear_body_prism=bool(v['clear_body_prism']), train_clear_body=bool(v['train_clear_body']),
+                         clear_body_height_m=float(v['clear_body_height']),
                          see_through_test=bool(v['see_through_test']))
         if target_needs_point(target) and len(v['target_point']) != 2:
             raise ValueError(f"target '{target}' needs target_point with 2 numbers")
