@@ -132,7 +132,11 @@ cell's SDF value, the sum of these documented terms:
   or rho > ``uncertainty_threshold``) the SDF is computed with U_c as object (f_obj) and as free
   (f_free); the cell's value is uncertain by Delta = f_obj - f_free, a Bernoulli choice with
   variance q (1 - q) Delta^2, q = 1/2 (``alternative_weight`` = 0.25); a component that is the
-  only object evidence is skipped. The term is multiplied by n_eff = min(#affected training
+  only object evidence is skipped, and so are a clear body's prism cells and the table seen through it
+  (their uncertainty is the prism's height, not whether the body is there: as an alternative, "free"
+  would leave no object at all - on the clear bottle G it gave them sigma ~7 cm, 50 times the
+  disagreement variance they are documented to carry, and the mean shape followed the table around
+  them; they keep ``disagreement_variance_m2``). The term is multiplied by n_eff = min(#affected training
   cells, pi (l_e / res)^2) (``error_correlation_length_m`` l_e, an effective-sample-size
   correction) and **capped in extent**: it reaches only cells within ``propagation_radius_m`` of
   U_c (far cells' SDF is decided by certain surface nearer to them; without the cap a large
@@ -1857,7 +1861,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     noise = np.where(observed, noise, params.unobserved_variance_m2)
     train_mask = ~unknown
     sdf_object = occ_bin | ~train_mask  # what the GPIS's SDF treats as object (pipeline.publishable_grids)
-    noise = noise + _propagation_variance(sdf_object, uncertain, train_mask, geometry, params)
+    noise = noise + _propagation_variance(sdf_object, uncertain & ~(body | behind), train_mask, geometry, params)
     noise = np.where(train_mask, noise, np.maximum(noise, params.disagreement_variance_m2))  # unused by the GP
     noise_px = np.where(missing_px, np.nan, var_z + params.disagreement_variance_m2 * rho)
     vs, us = np.nonzero(target_px)
