@@ -31,11 +31,12 @@ class Box:
     rgb: tuple[float, float, float] = (40.0, 90.0, 200.0)
     yaw_deg: float = 0.0
 
-    def contains(self, xy: np.ndarray) -> np.ndarray:
-        """Whether true table points (x, y) (relative to the optical axis' foot) lie in the box's footprint."""
+    def local_xy(self, xy: np.ndarray) -> np.ndarray:
+        """True table points (x, y) (relative to the optical axis' foot) in the box's own frame: centre at 0,
+        axes along its edges (m)."""
         c, s = np.cos(np.radians(self.yaw_deg)), np.sin(np.radians(self.yaw_deg))
         dx, dy = xy[..., 0] - self.x, xy[..., 1] - self.y
-        return (np.abs(c * dx + s * dy) < self.half_x) & (np.abs(-s * dx + c * dy) < self.half_y)
+        return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
 
 
 @dataclass

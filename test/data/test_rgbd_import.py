@@ -21,23 +21,33 @@ from gpis_grasp_ros.tools import import_rgbd  # noqa: E402
 BOX = Box(0.0, 0.01, 0.03, 0.02, 0.04)
 
 
+def _millimetres(depth_m: np.ndarray) -> np.ndarray:
+    return np.where(np.isfinite(depth_m), np.round(depth_m * 1000), 0).astype(np.uint16)
+
+
+def _write_capture(out: Path, scene: TiltedScene, rgb: np.ndarray, depth_m: np.ndarray,
+                   label: np.ndarray) -> tuple[float, float]:
+    """Files as a user has them: PNG colour, 16-bit mm depth and the noise-free true depth, the target's mask,
+    intrinsics YAML. Returns the target's mean pixel (u, v)."""
+    cv2.imwrite(str(out / 'rgb.png'), np.asarray(rgb, dtype=np.uint8)[..., ::-1])
+    cv2.imwrite(str(out / 'depth.png'), _millimetres(depth_m))
+    cv2.imwrite(str(out / 'true-depth.png'), _millimetres(scene.render()[0]))
+    cv2.imwrite(str(out / 'mask.png'), np.where(label == 1, 255, 0).astype(np.uint8))
+    i = scene.intrinsics
+    (out / 'cam.yaml').write_text(yaml.safe_dump({'fx': i.fx, 'fy': i.fy, 'cx': i.cx, 'cy': i.cy,
+                                                  'xres': i.width, 'yres': i.height}))
+    v, u = np.nonzero(label == 1)
+    return float(u.mean()), float(v.mean())
+
+
 @pytest.fixture(scope='module')
 def capture_files(tmp_path_factory):
     """A tilted synthetic capture written as a user would have it: JPEG-free PNG colour, 16-bit mm depth, YAML."""
     out = tmp_path_factory.mktemp('capture')
     scene = TiltedScene(45.0, boxes=[BOX], width=320, height=240, focal_px=300.0)
     rgb, depth, label = scene.frames(1, seed=4, model=SensorModel.named('realsense_d400'))
-    depth_mm = np.where(np.isfinite(depth[0]), np.round(depth[0] * 1000), 0).astype(np.uint16)
-    cv2.imwrite(str(out / 'rgb.png'), rgb[0][..., ::-1])
-    cv2.imwrite(str(out / 'depth.png'), depth_mm)
-    clean, _, _ = scene.render()
-    cv2.imwrite(str(out / 'true-depth.png'), np.where(np.isfinite(clean), np.round(clean * 1000), 0).astype(np.uint16))
-    cv2.imwrite(str(out / 'mask.png'), np.where(label == 1, 255, 0).astype(np.uint8))
-    i = scene.intrinsics
-    (out / 'cam.yaml').write_text(yaml.safe_dump({'fx': i.fx, 'fy': i.fy, 'cx': i.cx, 'cy': i.cy,
-                                                  'xres': i.width, 'yres': i.height}))
-    v, u = np.nonzero(label == 1)
-    return out, scene, depth_mm, (float(u.mean()), float(v.mean()))
+    target = _write_capture(out, scene, rgb[0], depth[0], label)
+    return out, scene, _millimetres(depth[0]), target
 
 
 def test_depth_formats(tmp_path):
@@ -167,27 +177,16 @@ def test_cli_ground_truth_keeps_the_full_resolution_of_a_scaled_capture(tmp_path
     box = Box(0.0, 0.0, 0.035, 0.02, 0.04, yaw_deg=30.0)
     scene = TiltedScene(45.0, distance_m=0.6, boxes=[box], width=480, height=360, focal_px=450.0)
     depth, rgb, label = scene.render()
-    depth_mm = np.where(np.isfinite(depth), np.round(depth * 1000), 0).astype(np.uint16)
-    cv2.imwrite(str(tmp_path / 'rgb.png'), rgb.astype(np.uint8)[..., ::-1])
-    cv2.imwrite(str(tmp_path / 'depth.png'), depth_mm)
-    cv2.imwrite(str(tmp_path / 'mask.png'), np.where(label == 1, 255, 0).astype(np.uint8))
-    i = scene.intrinsics
-    (tmp_path / 'cam.yaml').write_text(yaml.safe_dump({'fx': i.fx, 'fy': i.fy, 'cx': i.cx, 'cy': i.cy,
-                                                       'width': i.width, 'height': i.height}))
-    v, u = np.nonzero(label == 1)
+    u, v = _write_capture(tmp_path, scene, rgb, depth, label)
     bag = tmp_path / 'scaled.mcap'
     assert import_rgbd.main(['--rgb', str(tmp_path / 'rgb.png'), '--depth', str(tmp_path / 'depth.png'),
                              '--intrinsics', str(tmp_path / 'cam.yaml'), str(bag), '--scale', '0.5',
-                             '--gt-mask', str(tmp_path / 'mask.png'), '--gt-depth', str(tmp_path / 'depth.png'),
-                             '--target-pixel', str(u.mean()), str(v.mean())]) == 0
+                             '--gt-mask', str(tmp_path / 'mask.png'), '--gt-depth', str(tmp_path / 'true-depth.png'),
+                             '--target-pixel', str(u), str(v)]) == 0
     loaded = load_bag(bag)
     assert loaded.depth_frames.shape == (1, 180, 240)
     sdf, g = loaded.true_sdf.astype(np.float64), loaded.true_geometry
-    xy = scene.table_xy(g.to_sensor(g.cell_centers()))
-    c, s = np.cos(np.radians(box.yaw_deg)), np.sin(np.radians(box.yaw_deg))
-    local = np.stack([c * (xy[..., 0] - box.x) + s * (xy[..., 1] - box.y),
-                      -s * (xy[..., 0] - box.x) + c * (xy[..., 1] - box.y)], axis=-1)
-    q = np.abs(local) - (box.half_x, box.half_y)
+    q = np.abs(box.local_xy(scene.table_xy(g.to_sensor(g.cell_centers())))) - (box.half_x, box.half_y)
     box_sdf = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
 
     def normals(f: np.ndarray) -> np.ndarray:

@@ -98,17 +98,6 @@ def test_real_bottle_plan_and_simulated_executions():
     assert evaluate_bag(BOTTLE, TARGETS[BOTTLE], trials=20, seed=0, oracle=True).p_f > 0.9
 
 
-def test_real_bottle_with_a_given_height():
-    """clear_body_height_m reaches the segmentation: the bottle's prism at 6.1 cm (its true height) instead of
-    the priors' 5.4 cm is narrower (README: occupancy IoU 0.58 instead of 0.60; a prism under a round body's
-    silhouette at its true height is too narrow, so this does not help the bottle: 13.8 instead of 19.2 of 20)."""
-    prior = evaluate_bag(BOTTLE, TARGETS[BOTTLE], trials=20, seed=0)
-    known = evaluate_bag(BOTTLE, TARGETS[BOTTLE], trials=20, seed=0, clear_body_height_m=0.061)
-    assert known.occupancy_iou < prior.occupancy_iou - 0.01
-    with pytest.raises(ValueError, match='clear_body_height_m'):
-        evaluate_bag(BOTTLE, TARGETS[BOTTLE], clear_body_height_m=-0.01)
-
-
 def test_evaluate_command_runs_seeds_the_oracle_and_other_planners(capsys):
     u, v = TARGETS[BOTTLE]
     args = [str(BOTTLE), '--evaluate', '--target-pixel', str(u), str(v), '--trials', '5', '--seed', '3']
@@ -123,6 +112,19 @@ def test_evaluate_command_runs_seeds_the_oracle_and_other_planners(capsys):
     assert main(args + ['--method', 'gp-m']) == 0
     out = capsys.readouterr().out
     assert '; gp-m ' in out and '/5 in force closure on the true shape' in out
+
+    def occupancy_iou(text: str) -> float:
+        return float(text.split('target occupancy IoU ')[1].split(',')[0])
+
+    # --clear-body-height reaches the segmentation: the bottle's prism at its true 6.1 cm instead of the priors'
+    # 5.4 cm is narrower (README: occupancy IoU 0.58 instead of 0.60; a prism under a round body's silhouette
+    # at its true height is too narrow, so this does not help the bottle: 13.8 instead of 19.2 of 20)
+    assert main(args + ['--clear-body-height', '0.061']) == 0
+    given = occupancy_iou(capsys.readouterr().out)
+    assert main(args) == 0
+    assert given < occupancy_iou(capsys.readouterr().out) - 0.01
+    assert main(args + ['--clear-body-height', '-0.01']) == 2
+    assert 'clear_body_height_m' in capsys.readouterr().err
 
 
 def test_real_flower_box_is_split_from_the_notebook_it_touches():
