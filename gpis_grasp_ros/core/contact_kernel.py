@@ -15,6 +15,17 @@ or dips below zero inside (c2 > 0, vertex inside the segment, negative discrimin
 crossing is the smallest root in the segment (numerically stable quadratic formula). The crossing
 seen from jaw 2 is the first crossing of the same line walked backwards from its far end.
 
+**Lines that leave the padded grid** (a small object: the 9 cm opening spans many of its cells).
+Beyond the padded grid the SDF is the value at the nearest point of the padded grid plus the
+distance (m), as :meth:`contacts.SdfBank.values_cells` extrapolates it (:func:`_extended`). When
+every border node of a padded grid is positive (``border_positive``: the object stays clear of the
+grid's border by more than the pad), that field is positive everywhere off the grid - the border
+is linear between its nodes and the distance only adds - so a line can only cross the surface
+where it runs over the grid: the walk covers the part of the line inside the padded grid
+(:func:`_clip`, Liang-Barsky) and the crossings are exact there too. The jaw clearances and the
+start-inside test use the extended field at the line ends. Grids whose border is not positive
+are left to the sampled march of :mod:`contacts`.
+
 ``cache=True``: the machine code is cached next to this file (``__pycache__``), so only the first
 import on a machine pays the compile time (a few seconds).
 """
@@ -46,6 +57,62 @@ def _bilinear(grid, u, v):
     f10 = grid[i + 1, j]
     f11 = grid[i + 1, j + 1]
     return f00 + (f01 - f00) * fx + fy * ((f10 - f00) + (f11 - f01 - f10 + f00) * fx)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _extended(grid, u, v, res):
+    """SDF (m) at padded cell coordinates (u, v) anywhere: bilinear on the padded grid, beyond it the
+    value at the nearest point of the padded grid plus the distance to it (``res`` m per cell)."""
+    hp, wp = grid.shape
+    uc = min(max(u, 0.0), wp - 1.0)
+    vc = min(max(v, 0.0), hp - 1.0)
+    f = _bilinear(grid, uc, vc)
+    if uc != u or vc != v:
+        f += math.hypot(u - uc, v - vc) * res
+    return f
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _clip(px, py, ux, uy, length, wp, hp):
+    """(t_in, t_out): the part of the segment from (px, py) along (ux, uy) for ``length`` cells that
+    lies in the padded grid [0, wp - 1] x [0, hp - 1] (Liang-Barsky); t_in > t_out when it misses
+    the grid. A segment inside the grid gives exactly (0, length)."""
+    t_in = 0.0
+    t_out = length
+    for axis in range(2):
+        p = px if axis == 0 else py
+        u = ux if axis == 0 else uy
+        hi = (wp - 1.0) if axis == 0 else (hp - 1.0)
+        if abs(u) < 1e-15:
+            if p < 0.0 or p > hi:
+                return 1.0, 0.0
+            continue
+        a = -p / u
+        b = (hi - p) / u
+        if a > b:
+            a, b = b, a
+        t_in = max(t_in, a)
+        t_out = min(t_out, b)
+    return t_in, t_out
+
+
+@njit(cache=True, nogil=True)
+def border_positive(grids):
+    """Per padded grid (B, Hp, Wp): every node on its border is > 0 (then the extrapolated SDF is
+    positive everywhere off the grid: see the module docstring)."""
+    b, hp, wp = grids.shape
+    out = np.ones(b, dtype=np.bool_)
+    for k in range(b):
+        for i in range(hp):
+            if grids[k, i, 0] <= 0 or grids[k, i, wp - 1] <= 0:
+                out[k] = False
+                break
+        if out[k]:
+            for j in range(wp):
+                if grids[k, 0, j] <= 0 or grids[k, hp - 1, j] <= 0:
+                    out[k] = False
+                    break
+    return out
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -186,9 +253,11 @@ def _walk(grid, px, py, ux, uy, length):
 
 @njit(cache=True, nogil=True)
 def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad, patch_tol, contacts, no_contact,
-                   inside, clearance):
+                   inside, clearance, res=0.0):
     """Contacts of T trials (jaw 1 at (ax, ay), unpadded cells, closing along (ux, uy) for ``length``
-    cells) on face lines at ``offsets`` (cells) across the jaw; every line on the padded grid.
+    cells) on face lines at ``offsets`` (cells) across the jaw. A line may leave the padded grid if
+    that grid's border is positive (:func:`border_positive`; the caller checks): it is walked where it
+    runs over the grid, and its ends are valued by :func:`_extended` with ``res`` m per cell.
 
     ``grids`` (B, Hp, Wp) padded SDFs (m), ``lipschitz`` (B,) their :func:`lipschitz_bounds` (zeros:
     walk every cell), ``index`` (T,) grid of each trial. Fills ``contacts``
@@ -201,6 +270,8 @@ def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad
     n_l = offsets.shape[0]
     t_hit = np.empty((2, n_l))
     has = np.empty((2, n_l), dtype=np.bool_)
+    hp = grids.shape[1]
+    wp = grids.shape[2]
     for t in range(n_t):
         grid = grids[index[t]]
         lip = lipschitz[index[t]]
@@ -222,17 +293,34 @@ def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad
             oy = ay[t] + pad + offsets[k] * perp_y
             ex = ox + ln * vx
             ey = oy + ln * vy
-            f0 = _bilinear(grid, ox, oy)
-            f1 = _bilinear(grid, ex, ey)
+            f0 = _extended(grid, ox, oy, res)
+            f1 = _extended(grid, ex, ey, res)
             clear0 = min(clear0, f0)
             clear1 = min(clear1, f1)
             if f0 <= 0 or f1 <= 0:
                 into = True
-            s1, h1 = first_crossing(grid, ox, oy, vx, vy, reach1, lip, f0)
-            has[0, k] = h1
+            has[0, k] = False
             has[1, k] = False
-            if h1 or reach1 < ln:  # a crossing, or the walk stopped at the window: try from jaw 2
-                s2, h2 = first_crossing(grid, ex, ey, -vx, -vy, reach2, lip, f1)
+            # the part of the line over the padded grid, as distances from jaw 1 [t_in, t_out] and from
+            # jaw 2 [ln - t_out, ln - t_in]; the whole line (0, ln) when it stays on the grid
+            t_in, t_out = _clip(ox, oy, vx, vy, ln, wp, hp)
+            if t_in > t_out:
+                continue
+            h1 = False
+            s1 = 0.0
+            if reach1 > t_in:
+                s1, h1 = first_crossing(grid, ox + t_in * vx, oy + t_in * vy, vx, vy, min(reach1, t_out) - t_in, lip,
+                                        f0 if t_in == 0.0 else math.nan)
+                s1 += t_in
+            has[0, k] = h1
+            if h1 or reach1 < t_out:  # a crossing, or the walk stopped at the window: try from jaw 2
+                b_in = ln - t_out
+                h2 = False
+                s2 = 0.0
+                if reach2 > b_in:
+                    s2, h2 = first_crossing(grid, ex - b_in * vx, ey - b_in * vy, -vx, -vy,
+                                            min(reach2, ln - t_in) - b_in, lip, f1 if b_in == 0.0 else math.nan)
+                    s2 += b_in
                 has[1, k] = h2
                 if h1:
                     t_hit[0, k] = s1
@@ -242,7 +330,7 @@ def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad
                     t_hit[1, k] = ln - s2
                     any_hit = True
                     reach2 = min(reach2, s2 + patch_tol)
-                elif h1 and reach2 >= ln:  # round-off: the whole line walked back without the touch seen
+                elif h1 and reach2 >= ln - t_in:  # round-off: the whole line walked back without the touch seen
                     has[1, k] = True
                     t_hit[1, k] = s1
         inside[t] = into

@@ -1,6 +1,7 @@
 """Planner benchmark: time and P_F of every planner, and vectorised P_F vs a per-sample Python loop.
 
     python -m gpis_grasp_ros.bench planners [--seed N] [--repeats R] [--loop-samples S]
+    python -m gpis_grasp_ros.bench planners --small [--seed N] [--repeats R]
 
 Scene: a 25 x 25 GPIS (5 mm cells) of an "Object A"-like part: a well-observed body and a large
 "transparent" part that the mean shape includes (negative prior mean) with high variance
@@ -15,6 +16,13 @@ gives the **median** planning time (the final P_F estimate is timed separately a
 min-max range and the median planning **CPU** time (``GraspResult.planning_cpu_time``: on a
 shared machine wall time grows with the other jobs' load, CPU time much less). The GP-G rows also
 give the fraction of SCP restarts that met the convergence test and the median/max QP solves per restart.
+
+``--small``: the same scene shrunk (same shape in cells, 5.0 / 1.6 / 1.2 mm cells: a 12 / 4 / 3 cm
+grid), where the 9 cm opening reaches far beyond the grid and most face lines leave the padded grid.
+GP-GPIS-OPT and GP-P (adaptive) are timed with the same protocol twice: as the planners run them (the
+compiled kernel walks the part of a line over the padded grid, :mod:`~gpis_grasp_ros.core.contact_kernel`)
+and with those lines given to the sampled march instead (0.1-cell steps, the path every line leaving
+the padded grid took before), by forcing :attr:`SdfBank.border_positive` to False.
 
 :func:`pf_python_loop` is the straightforward reference ("peer") implementation: one sample at a
 time, scalar Python code (each face line cut at the grid lines it crosses, the per-cell quadratic
@@ -34,7 +42,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from gpis_grasp_ros.core.contacts import GripperParams
+from gpis_grasp_ros.core.contacts import GripperParams, SdfBank
 from gpis_grasp_ros.core.gpis import GpisPosterior, KernelParams
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.planners import PlannerParams, plan
@@ -277,13 +285,48 @@ def _count(items) -> dict[str, int]:
     return out
 
 
+SMALL_CELLS_MM = (5.0, 1.6, 1.2)
+
+
+def small_objects(seed: int, repeats: int) -> None:
+    """``--small``: GP-GPIS-OPT and GP-P times on the shrunk scene, kernel vs sampled march off the grid."""
+    params = PlannerParams()
+    print(f'scene: the benchmark part shrunk to cells of {", ".join(f"{c} mm" for c in SMALL_CELLS_MM)} (25 x 25), '
+          f'opening w_g = {params.gripper.max_opening * 1e3:.0f} mm, seed {seed}')
+    print(f'timing: median of {repeats} runs per method (same seed), planning only; load average before: {_load()}')
+    print('\n| cells (mm) | grid (mm) | method | off-grid lines by | median (s) | CPU (s) | P_F | jaws (cells) |')
+    print('|---:|---:|---|---|---:|---:|---:|---|')
+    kernel_property = SdfBank.border_positive
+    march = property(lambda self: np.zeros(self.n, dtype=bool))
+    for cell_mm in SMALL_CELLS_MM:
+        post = synthetic_posterior(resolution=cell_mm * 1e-3)
+        g = post.geometry
+        for name in ('gp-gpis-opt', 'gp-p'):
+            for label, prop in (('kernel', kernel_property), ('sampled march', march)):
+                SdfBank.border_positive = prop
+                try:
+                    plan(name, post, params, seed=seed)  # warm-up
+                    t_med, _, _, t_cpu, res = _timed_plans(name, post, params, seed, repeats)
+                finally:
+                    SdfBank.border_positive = kernel_property
+                uv1, uv2 = g.to_cell(res.jaw1), g.to_cell(res.jaw2)
+                print(f'| {cell_mm:.1f} | {g.width * cell_mm:.0f} | {name} | {label} | {t_med:.3f} | {t_cpu:.3f} | '
+                      f'{res.p_f:.3f} | ({uv1[0]:.1f}, {uv1[1]:.1f}) - ({uv2[0]:.1f}, {uv2[1]:.1f}) |', flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m gpis_grasp_ros.bench planners', description=__doc__.split('\n')[0])
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--repeats', type=int, default=3,
                     help='timing runs per planner, brute-force GP-P included (the median is reported)')
     ap.add_argument('--loop-samples', type=int, default=1000, help='shape samples of the P_F loop comparison')
+    ap.add_argument('--small', action='store_true',
+                    help='small objects: the scene shrunk to 1.6 and 1.2 mm cells, lines leaving the padded grid by '
+                         'the kernel vs the sampled march')
     args = ap.parse_args(argv)
+    if args.small:
+        small_objects(args.seed, args.repeats)
+        return 0
 
     post = synthetic_posterior()
     params = PlannerParams()

@@ -8,6 +8,9 @@
   implementation (float32) of the same model: the same flags on every trial and contacts within
   the float32 round-off of the reference, for random shapes, perturbed grasps, several grids of a
   bank and trials that leave the padded grid.
+* Small objects, whose face lines mostly leave the padded grid: the kernel walks the part over the
+  grid and must agree with exact crossings on a bank padded so widely that the lines stay on it; a
+  grid whose padded border is not positive keeps the sampled march.
 """
 
 from __future__ import annotations
@@ -190,3 +193,93 @@ def test_lipschitz_bound_is_tight_and_jumps_find_the_same_crossing() -> None:
             assert abs(walk[0] - jump[0]) <= 1e-9
             same += 1
     assert same > 300
+
+
+def _small_object_bank(rng: np.random.Generator, pad_cells: int = 6) -> tuple[SdfBank, GridGeometry]:
+    """Four blobby shapes of a few cells in the middle of a 25 x 25 grid of 1.2 mm cells (a 3 cm grid,
+    against the 9 cm opening), as GPIS samples of a small object look."""
+    g = GridGeometry(0.0, 0.0, 0.0012, 25, 25)
+    yy, xx = np.mgrid[0:25, 0:25].astype(float)
+    grids = []
+    for _ in range(4):
+        cx, cy, r = rng.uniform(10, 15), rng.uniform(10, 15), rng.uniform(2, 5)
+        ripple = sum(rng.normal(0, 0.4) * np.cos(rng.normal(0, 0.6) * xx + rng.normal(0, 0.6) * yy
+                                                 + rng.uniform(0, 6.3)) for _ in range(3))
+        grids.append(g.resolution * (np.hypot(xx - cx, yy - cy) - r + ripple))
+    return SdfBank(np.stack(grids), g, pad_cells=pad_cells), g
+
+
+def _long_grasps(rng: np.random.Generator, n: int, g: GridGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """Jaws up to 9 cm apart around the grid's centre (most face lines leave the padded grid; some
+    trials miss the grid entirely), perturbed."""
+    centre = rng.uniform(0.008, 0.022, (n, 2))
+    theta = rng.uniform(0, 2 * np.pi, n)
+    half = rng.uniform(0.005, 0.045, (n, 1))
+    axis = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    centre[: n // 20] += np.array([0.06, 0.0])  # beside the grid: lines that may never cross it
+    return perturb_grasps(centre - half * axis, centre + half * axis, rng.standard_normal((n, 2, 2)), 0.0006)
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_kernel_off_the_padded_grid_matches_exact_crossings_on_a_wider_pad(seed: int) -> None:
+    """Lines that leave the padded grid (a small object) go through the compiled kernel, walked where
+    they run over the grid. Reference: the vectorised numpy implementation of exact crossings on a bank
+    padded so widely that every line stays on its padded grid - the same SDF wherever a crossing can be
+    (the extrapolated field is positive beyond the default pad). Flags and contacts must agree; the jaw
+    clearances are those of the default bank's extrapolation (its numpy reference)."""
+    rng = np.random.default_rng(100 + seed)
+    bank, g = _small_object_bank(rng)
+    wide, _ = _small_object_bank(np.random.default_rng(100 + seed), pad_cells=110)
+    assert bank.border_positive.all()
+    n = 3000
+    j1, j2 = _long_grasps(rng, n, g)
+    index = rng.integers(0, bank.n, n)
+    gripper = GripperParams()
+    lo = np.minimum(g.to_cell(j1), g.to_cell(j2)) - 5
+    hi = np.maximum(g.to_cell(j1), g.to_cell(j2)) + 5
+    assert np.mean((lo < -bank.pad).any(axis=1) | (hi > 24 + bank.pad).any(axis=1)) > 0.7  # mostly off the grid
+    fast = find_contacts(bank, j1, j2, gripper, index=index)
+    ref = find_contacts(wide, j1, j2, gripper, index=index, compiled=False)
+    for name in ('valid', 'no_contact', 'start_inside', 'opening_exceeded', 'no_normal'):
+        assert np.array_equal(getattr(fast, name), getattr(ref, name)), name
+    ok = ref.valid
+    assert 0.2 * n < ok.sum() < n and ref.no_contact.sum() > 50
+    for name in ('c1', 'c2'):
+        err = np.abs(getattr(fast, name)[ok] - getattr(ref, name)[ok]).max() / g.resolution
+        assert err < 1e-4, (name, err)
+    assert np.array_equal(np.isnan(fast.c1), np.isnan(ref.c1))
+    own = find_contacts(bank, j1, j2, gripper, index=index, compiled=False)  # sampled march off the grid
+    for name in ('clearance1', 'clearance2'):
+        assert np.allclose(getattr(fast, name), getattr(own, name), atol=1e-7)
+    # the march (0.1-cell steps, the path these lines took before) finds the same contacts less exactly and can
+    # step over a grazing touch
+    assert np.count_nonzero(fast.valid != own.valid) <= 3
+    both = fast.valid & own.valid
+    assert np.abs(fast.c1[both] - own.c1[both]).max() / g.resolution < 0.05
+
+
+def test_grid_with_a_non_positive_border_keeps_the_sampled_march() -> None:
+    """An object reaching the padded grid's border (the extrapolated SDF may cross zero off the grid):
+    its lines leaving the padded grid are not given to the kernel but marched, as the reference does."""
+    g = GridGeometry(0.0, 0.0, 0.001, 20, 20)
+    yy, xx = np.mgrid[0:20, 0:20].astype(float)
+    band = g.resolution * (np.abs(yy - 10.0) - 3.0)  # a band through the whole grid, ends deep inside (-3 cells)
+    deep = g.resolution * (np.abs(yy - 10.0) - 9.0)  # a band 18 cells wide: -9 cells at the border, pad 6
+    bank = SdfBank(np.stack([band, deep]), g)
+    assert bank.border_positive.tolist() == [True, False]
+    # jaws closing along the band, far off the grid on the left and right, and across it
+    j1 = np.array([[-0.030, 0.0105], [-0.030, 0.0105], [0.0095, -0.030]])
+    j2 = np.array([[0.050, 0.0105], [0.050, 0.0105], [0.0095, 0.050]])
+    index = np.array([0, 1, 1])
+    gripper = GripperParams(max_opening=0.1)
+    fast = find_contacts(bank, j1, j2, gripper, index=index)
+    ref = find_contacts(bank, j1, j2, gripper, index=index, compiled=False)
+    for name in ('valid', 'no_contact', 'start_inside'):
+        assert np.array_equal(getattr(fast, name), getattr(ref, name)), name
+    assert np.allclose(fast.c1, ref.c1, atol=1e-4 * g.resolution) and np.allclose(fast.c2, ref.c2,
+                                                                                   atol=1e-4 * g.resolution)
+    # grid 0: the band's ends, -3 cells at the grid's sides, are extrapolated to zero 3 cells beyond them,
+    # inside the 6-cell pad, where the kernel walks (jaw 1's face lines meet it first at -3 cells)
+    assert -3.5 < g.to_cell(fast.c1[0])[0] < -2.5 and 21.5 < g.to_cell(fast.c2[0])[0] < 22.5
+    # grid 1: its ends reach zero 9 cells beyond the sides, off the padded grid, where only the march looks
+    assert g.to_cell(fast.c1[1])[0] < -bank.pad and g.to_cell(fast.c2[1])[0] > 19 + bank.pad
