@@ -17,17 +17,17 @@ seen from jaw 2 is the first crossing of the same line walked backwards from its
 
 **Lines that leave the padded grid** (a small object: the 9 cm opening spans many of its cells).
 Beyond the padded grid the SDF is the value at the nearest point of the padded grid plus the
-distance (m), as :meth:`contacts.SdfBank.values_cells` extrapolates it (:func:`_extended`). When
-every border node of a padded grid is positive (``border_positive``: the object stays clear of the
-grid's border by more than the pad), that field is positive everywhere off the grid - the border
-is linear between its nodes and the distance only adds - so a line can only cross the surface
-where it runs over the grid: the walk covers the part of the line inside the padded grid
-(:func:`_clip`, Liang-Barsky) and the crossings are exact there too. The jaw clearances and the
-start-inside test use the extended field at the line ends. Grids whose border is not positive
-are left to the sampled march of :mod:`contacts`.
-
-``cache=True``: the machine code is cached next to this file (``__pycache__``), so only the first
-import on a machine pays the compile time (a few seconds).
+distance (m), as :meth:`contacts.SdfBank.values_cells` extrapolates it (:func:`_extended`). Along a
+line that field is piecewise simple (:func:`off_grid_crossing`): beside an edge of the grid it is the
+edge's value (linear between two nodes) plus the distance to the edge (linear), so linear between
+the points where the line crosses a node's row or column; beside a corner it is the corner node's
+value plus the distance to it, whose zero is a circle around the corner (a quadratic). The walk
+takes the part of the line before the grid, the part over it (the cell walk above, after clipping
+the line to the grid, :func:`_clip`, Liang-Barsky) and the part after it in order, with exact
+crossings in all three. When every border node of a padded grid is positive
+(:func:`border_positive`) the extrapolated field is positive everywhere off the grid - the border
+is linear between its nodes and the distance only adds - and only the part over the grid is walked.
+The jaw clearances and the start-inside test use the extended field at the line ends.
 """
 
 from __future__ import annotations
@@ -94,6 +94,87 @@ def _clip(px, py, ux, uy, length, wp, hp):
         t_in = max(t_in, a)
         t_out = min(t_out, b)
     return t_in, t_out
+
+
+@njit(cache=True, nogil=True)
+def off_grid_crossing(grid, px, py, ux, uy, t0, t1, res):
+    """First zero crossing (t, from (px, py) along the unit vector (ux, uy); padded cell coordinates) in
+    [t0, t1] of the extrapolated SDF (:func:`_extended`, ``res`` m per cell) on a part of a line that runs
+    off the padded grid (on its border at most). Returns ``(t, hit)``; a part that starts at f <= 0 hits
+    at t0.
+
+    The part is cut where the line crosses an integer row or column; in each piece the clamped point
+    runs along one border edge between two nodes (f linear in t) or stays at one corner node k
+    (f = f(k) + res |p - k|, zero on the circle |p - k| = -f(k) / res)."""
+    hp, wp = grid.shape
+    xmax = wp - 1.0
+    ymax = hp - 1.0
+    ta = t0
+    ga = _extended(grid, px + ta * ux, py + ta * uy, res)
+    if ga <= 0:
+        return ta, True
+    while ta < t1:
+        tb = t1
+        for axis in range(2):
+            p = (px + ta * ux) if axis == 0 else (py + ta * uy)
+            u = ux if axis == 0 else uy
+            p0 = px if axis == 0 else py
+            if abs(u) < 1e-15:
+                continue
+            k = math.floor(p + 1e-9) + 1.0 if u > 0 else math.ceil(p - 1e-9) - 1.0  # next row / column
+            tk = (k - p0) / u
+            if ta < tk < tb:
+                tb = tk
+        tm = 0.5 * (ta + tb)
+        mx = px + tm * ux
+        my = py + tm * uy
+        gb = _extended(grid, px + tb * ux, py + tb * uy, res)
+        if (0.0 <= mx <= xmax) or (0.0 <= my <= ymax):  # beside an edge (or over the grid): linear
+            if gb <= 0:
+                return ta + (tb - ta) * ga / (ga - gb), True
+        else:  # beside a corner node k: f(k) + res |p - k| = 0 on a circle of radius r
+            kx = 0.0 if mx < 0 else xmax
+            ky = 0.0 if my < 0 else ymax
+            fk = grid[int(ky), int(kx)]
+            if fk < 0:
+                r = -fk / res
+                dx = px + ta * ux - kx
+                dy = py + ta * uy - ky
+                b = dx * ux + dy * uy
+                c = dx * dx + dy * dy - r * r
+                disc = b * b - c
+                if disc >= 0:
+                    sq = math.sqrt(disc)
+                    for tau in (-b - sq, -b + sq):
+                        if 0.0 <= tau <= tb - ta:
+                            return ta + tau, True
+        ta = tb
+        ga = gb
+    return 0.0, False
+
+
+@njit(cache=True, nogil=True)
+def _line_crossing(grid, px, py, ux, uy, window, lip, f_start, res, positive, t_in, t_out):
+    """First zero crossing within ``window`` cells of (px, py) along (ux, uy) of a line that runs over the
+    padded grid on [t_in, t_out] (t_in > t_out: never): the part before the grid, the part over it
+    (:func:`first_crossing`) and the part after it, in order; the parts off the grid only if the grid's
+    border is not ``positive``. Returns ``(t, hit)``."""
+    if t_in > t_out:
+        if positive:
+            return 0.0, False
+        return off_grid_crossing(grid, px, py, ux, uy, 0.0, window, res)
+    if t_in > 0 and not positive:
+        t, hit = off_grid_crossing(grid, px, py, ux, uy, 0.0, min(t_in, window), res)
+        if hit:
+            return t, True
+    if window > t_in:
+        s, hit = first_crossing(grid, px + t_in * ux, py + t_in * uy, ux, uy, min(window, t_out) - t_in, lip,
+                                f_start if t_in == 0.0 else math.nan)
+        if hit:
+            return t_in + s, True
+    if window > t_out and not positive:
+        return off_grid_crossing(grid, px, py, ux, uy, t_out, window, res)
+    return 0.0, False
 
 
 @njit(cache=True, nogil=True)
@@ -252,12 +333,12 @@ def _walk(grid, px, py, ux, uy, length):
 
 
 @njit(cache=True, nogil=True)
-def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad, patch_tol, contacts, no_contact,
-                   inside, clearance, res=0.0):
+def exact_contacts(grids, lipschitz, positive, index, ax, ay, ux, uy, length, offsets, pad, patch_tol, contacts,
+                   no_contact, inside, clearance, res):
     """Contacts of T trials (jaw 1 at (ax, ay), unpadded cells, closing along (ux, uy) for ``length``
-    cells) on face lines at ``offsets`` (cells) across the jaw. A line may leave the padded grid if
-    that grid's border is positive (:func:`border_positive`; the caller checks): it is walked where it
-    runs over the grid, and its ends are valued by :func:`_extended` with ``res`` m per cell.
+    cells) on face lines at ``offsets`` (cells) across the jaw. Lines may leave the padded grid: off it
+    the SDF is :func:`_extended` (``res`` m per cell), walked only where the grid's border is not
+    ``positive`` (B,) (:func:`border_positive`; see the module docstring).
 
     ``grids`` (B, Hp, Wp) padded SDFs (m), ``lipschitz`` (B,) their :func:`lipschitz_bounds` (zeros:
     walk every cell), ``index`` (T,) grid of each trial. Fills ``contacts``
@@ -275,6 +356,7 @@ def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad
     for t in range(n_t):
         grid = grids[index[t]]
         lip = lipschitz[index[t]]
+        pos = positive[index[t]]
         vx = ux[t]
         vy = uy[t]
         ln = length[t]
@@ -304,23 +386,13 @@ def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad
             # the part of the line over the padded grid, as distances from jaw 1 [t_in, t_out] and from
             # jaw 2 [ln - t_out, ln - t_in]; the whole line (0, ln) when it stays on the grid
             t_in, t_out = _clip(ox, oy, vx, vy, ln, wp, hp)
-            if t_in > t_out:
-                continue
-            h1 = False
-            s1 = 0.0
-            if reach1 > t_in:
-                s1, h1 = first_crossing(grid, ox + t_in * vx, oy + t_in * vy, vx, vy, min(reach1, t_out) - t_in, lip,
-                                        f0 if t_in == 0.0 else math.nan)
-                s1 += t_in
+            # where a zero can be: the whole line, or only over the grid when the border is positive
+            last1 = min(t_out, ln) if pos else ln
+            last2 = min(ln - t_in, ln) if pos else ln
+            s1, h1 = _line_crossing(grid, ox, oy, vx, vy, reach1, lip, f0, res, pos, t_in, t_out)
             has[0, k] = h1
-            if h1 or reach1 < t_out:  # a crossing, or the walk stopped at the window: try from jaw 2
-                b_in = ln - t_out
-                h2 = False
-                s2 = 0.0
-                if reach2 > b_in:
-                    s2, h2 = first_crossing(grid, ex - b_in * vx, ey - b_in * vy, -vx, -vy,
-                                            min(reach2, ln - t_in) - b_in, lip, f1 if b_in == 0.0 else math.nan)
-                    s2 += b_in
+            if h1 or reach1 < last1:  # a crossing, or the walk stopped at the window: try from jaw 2
+                s2, h2 = _line_crossing(grid, ex, ey, -vx, -vy, reach2, lip, f1, res, pos, ln - t_out, ln - t_in)
                 has[1, k] = h2
                 if h1:
                     t_hit[0, k] = s1
@@ -330,7 +402,7 @@ def exact_contacts(grids, lipschitz, index, ax, ay, ux, uy, length, offsets, pad
                     t_hit[1, k] = ln - s2
                     any_hit = True
                     reach2 = min(reach2, s2 + patch_tol)
-                elif h1 and reach2 >= ln - t_in:  # round-off: the whole line walked back without the touch seen
+                elif h1 and reach2 >= last2:  # round-off: the whole line walked back without the touch seen
                     has[1, k] = True
                     t_hit[1, k] = s1
         inside[t] = into

@@ -61,12 +61,13 @@ the contact-patch tolerance beyond the nearest touch found on the other lines (s
 has zero patch weight) — instead of solving the quadratic on every cell of every line: about
 7x less CPU per call on the planners benchmark than the vectorised implementation, which is
 kept as the reference (``compiled=False``). Lines that leave the padded grid (small objects: the
-9 cm opening spans far more cells than the grid) are walked by the kernel where they run over the
-grid, provided the grid's padded border is positive (:attr:`SdfBank.border_positive`: then the
-extrapolated SDF has no zero off the grid); only other grids' lines leaving it are marched every
-``OFF_GRID_STEP_CELLS`` (on a 25 x 25 grid of 1.2-1.6 mm cells GP-GPIS-OPT took 7-12 s with every
-such line marched, 0.2 s now: ``python -m gpis_grasp_ros.bench planners --small``). In the numpy
-path everything is vectorised over a flat batch of
+9 cm opening spans far more cells than the grid) are walked by the kernel too, with exact crossings
+of the extrapolated SDF off the grid (piecewise linear beside an edge, a circle around a corner
+node; skipped where the grid's padded border is positive, :attr:`SdfBank.border_positive`, since
+the field cannot vanish there); the reference marches them every ``OFF_GRID_STEP_CELLS`` (on a 25 x 25
+grid of 1.2-1.6 mm cells GP-GPIS-OPT took 7-12 s with every such line marched, 0.2 s with the kernel:
+``python -m gpis_grasp_ros.bench planners --small``). In the numpy path everything is vectorised
+over a flat batch of
 "trials" (a perturbed grasp paired with one SDF of a bank, e.g. G grasps × S shape samples),
 processed in chunks of about 65k interpolated points so temporaries stay in cache and are reused
 between chunks (a per-thread workspace avoids re-faulting fresh large arrays). The bank stores,
@@ -92,7 +93,7 @@ MAX_POINTS_PER_CHUNK = 1 << 16
 #: Trials per call of the compiled kernel (:mod:`contact_kernel`), which needs no large temporaries.
 KERNEL_TRIALS_PER_CHUNK = 1 << 14
 
-#: March step (cells) for lines that leave the padded grid when crossings are otherwise exact.
+#: March step (cells) of the numpy reference (``compiled=False``) for lines that leave the padded grid.
 OFF_GRID_STEP_CELLS = 0.1
 
 #: An SDF gradient norm (dimensionless; 1 for an exact SDF) at or below this defines no normal:
@@ -304,7 +305,7 @@ class SdfBank:
     @property
     def border_positive(self) -> np.ndarray:
         """(B,) bool: every border node of the padded grid is > 0, so the extrapolated SDF has no zero
-        off the padded grid and the compiled kernel can take lines that leave it
+        off the padded grid and the compiled kernel walks lines that leave it only over the grid
         (:func:`contact_kernel.border_positive`; computed on first use)."""
         if self._border_positive is None:
             self._border_positive = border_positive(self.padded)
@@ -519,7 +520,7 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
         else n_steps
     chunk = max(1, MAX_POINTS_PER_CHUNK // (n_lines * n_work))
     use_kernel = compiled and gripper.exact_crossings
-    if use_kernel:  # the kernel needs no temporaries: chunks only bound the off-grid fallback's memory
+    if use_kernel:  # the kernel needs no temporaries: large chunks
         chunk = max(chunk, KERNEL_TRIALS_PER_CHUNK)
 
     if t_total == 0:
@@ -752,11 +753,10 @@ def _exact_on_padded(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.nda
     return np.stack([t_first, t_last]), has, no_contact, inside, clear
 
 
-def _kernel_on_padded(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray, offsets: np.ndarray,
+def _kernel_contacts(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray, offsets: np.ndarray,
                       idx: np.ndarray | None, patch_tol: float):
     """Contacts (2, T, 2) (cells), no-contact and start-inside flags (T,), clearances (2, T) (m) of
-    trials whose face lines all lie on the padded grid, or whose grid's border is positive
-    (:attr:`SdfBank.border_positive`), by the compiled kernel."""
+    trials by the compiled kernel (lines on or off the padded grid)."""
     n_t = a.shape[0]
     # a fresh writeable array: a read-only view would compile a second specialisation of the kernel
     index = np.zeros(n_t, dtype=np.intp) if idx is None else np.array(idx, dtype=np.intp)
@@ -764,7 +764,8 @@ def _kernel_on_padded(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np
     no_contact = np.empty(n_t, dtype=bool)
     inside = np.empty(n_t, dtype=bool)
     clear = np.empty((2, n_t))
-    exact_contacts(bank.padded, bank.lipschitz, index, np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]),
+    exact_contacts(bank.padded, bank.lipschitz, bank.border_positive, index, np.ascontiguousarray(a[:, 0]),
+                   np.ascontiguousarray(a[:, 1]),
                    np.ascontiguousarray(unit[:, 0]), np.ascontiguousarray(unit[:, 1]),
                    np.ascontiguousarray(length, dtype=np.float64), np.ascontiguousarray(offsets, dtype=np.float64),
                    float(bank.pad), float(patch_tol), c, no_contact, inside, clear, float(bank.geometry.resolution))
@@ -778,9 +779,11 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
 
     Returns contact points (2, T, 2) in cells for jaw 1 and jaw 2, the no-contact and
     start-inside flags (T,) and the clearances (2, T) (m) of both jaw faces. With ``compiled``
-    (exact crossings only) trials on the padded grid go through the compiled kernel and the
-    others through this function's sampled march.
+    (exact crossings only) every trial goes through the compiled kernel; otherwise lines on the padded
+    grid get the vectorised exact crossings and lines leaving it this function's sampled march.
     """
+    if exact and compiled:
+        return _kernel_contacts(bank, a, unit, length, offsets, idx, patch_tol)
     n_lines = offsets.size
     # All samples lie in the box spanned by both jaw faces (conservative bound), per trial.
     reach = float(np.abs(offsets).max())
@@ -791,35 +794,6 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
     on_t = ((lo >= -pad).all(axis=1) & (hi[:, 0] <= bank.geometry.width - 1 + pad)
             & (hi[:, 1] <= bank.geometry.height - 1 + pad))
     on_padded = bool(on_t.all())
-    if exact and compiled:
-        # the kernel also takes lines leaving the padded grid of a grid whose border is positive
-        on_t = on_t | bank.border_positive[np.zeros(a.shape[0], dtype=np.intp) if idx is None else idx]
-        if on_t.all():
-            return _kernel_on_padded(bank, a, unit, length, offsets, idx, patch_tol)
-        c = np.zeros((2, a.shape[0], 2))
-        no_contact = np.zeros(a.shape[0], dtype=bool)
-        inside = np.zeros(a.shape[0], dtype=bool)
-        clear = np.zeros((2, a.shape[0]))
-        for rows, kernel in ((np.flatnonzero(on_t), True), (np.flatnonzero(~on_t), False)):
-            if rows.size == 0:
-                continue
-            if kernel:
-                sub_idx = None if idx is None else idx[rows]
-                out = _kernel_on_padded(bank, a[rows], unit[rows], length[rows], offsets, sub_idx, patch_tol)
-                c[:, rows], no_contact[rows], inside[rows], clear[:, rows] = out
-                continue
-            # Leaves the padded grid of a grid whose border is not positive: marched every OFF_GRID_STEP_CELLS.
-            # The kernel's chunks are large (it needs no temporaries); the march's (trials, lines, samples)
-            # arrays are bounded by MAX_POINTS_PER_CHUNK as in the numpy path, else memory traffic dominates.
-            steps = int(np.ceil(float(length[rows].max()) / OFF_GRID_STEP_CELLS)) + 2
-            per = max(1, MAX_POINTS_PER_CHUNK // (n_lines * steps))
-            for s0 in range(0, rows.size, per):
-                sub = rows[s0:s0 + per]
-                sub_idx = None if idx is None else idx[sub]
-                out = _march_chunk(bank, a[sub], unit[sub], length[sub], n_seg[sub], offsets, n_steps, sub_idx,
-                                   patch_tol, exact=True, compiled=False)
-                c[:, sub], no_contact[sub], inside[sub], clear[:, sub] = out
-        return c, no_contact, inside, clear
     perp = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
     # Line origins (T, L) and samples (T, L, N) in cells.
     ox = a[:, 0, None] + offsets * perp[:, 0, None]

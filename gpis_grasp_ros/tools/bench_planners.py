@@ -20,9 +20,9 @@ give the fraction of SCP restarts that met the convergence test and the median/m
 ``--small``: the same scene shrunk (same shape in cells, 5.0 / 1.6 / 1.2 mm cells: a 12 / 4 / 3 cm
 grid), where the 9 cm opening reaches far beyond the grid and most face lines leave the padded grid.
 GP-GPIS-OPT and GP-P (adaptive) are timed with the same protocol twice: as the planners run them (the
-compiled kernel walks the part of a line over the padded grid, :mod:`~gpis_grasp_ros.core.contact_kernel`)
-and with those lines given to the sampled march instead (0.1-cell steps, the path every line leaving
-the padded grid took before), by forcing :attr:`SdfBank.border_positive` to False.
+compiled kernel walks lines that leave the padded grid too, :mod:`~gpis_grasp_ros.core.contact_kernel`)
+and with the trials whose lines leave it given to the numpy path's sampled march instead (0.1-cell
+steps; :func:`march_off_grid`, the dispatch the contact search had before).
 
 :func:`pf_python_loop` is the straightforward reference ("peer") implementation: one sample at a
 time, scalar Python code (each face line cut at the grid lines it crosses, the per-cell quadratic
@@ -42,7 +42,8 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from gpis_grasp_ros.core.contacts import GripperParams, SdfBank
+from gpis_grasp_ros.core import contacts
+from gpis_grasp_ros.core.contacts import GripperParams
 from gpis_grasp_ros.core.gpis import GpisPosterior, KernelParams
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.planners import PlannerParams, plan
@@ -288,6 +289,38 @@ def _count(items) -> dict[str, int]:
 SMALL_CELLS_MM = (5.0, 1.6, 1.2)
 
 
+def march_off_grid(bank, a, unit, length, offsets, idx, patch_tol):
+    """The contact dispatch before the kernel walked off the padded grid (for ``--small``): trials whose
+    face lines stay on the padded grid by the compiled kernel, the others by the numpy path's sampled march
+    (``OFF_GRID_STEP_CELLS``), in chunks of at most ``MAX_POINTS_PER_CHUNK`` samples. Same arguments and
+    results as :func:`contacts._kernel_contacts`."""
+    reach = float(np.abs(offsets).max())
+    b = a + length[:, None] * unit
+    lo, hi = np.minimum(a, b) - reach, np.maximum(a, b) + reach
+    g, pad = bank.geometry, bank.pad
+    on_t = (lo >= -pad).all(axis=1) & (hi[:, 0] <= g.width - 1 + pad) & (hi[:, 1] <= g.height - 1 + pad)
+    c, no_contact = np.zeros((2, a.shape[0], 2)), np.zeros(a.shape[0], dtype=bool)
+    inside, clear = np.zeros(a.shape[0], dtype=bool), np.zeros((2, a.shape[0]))
+    rows = np.flatnonzero(on_t)
+    if rows.size:
+        out = _KERNEL_CONTACTS(bank, a[rows], unit[rows], length[rows], offsets, None if idx is None else idx[rows],
+                               patch_tol)
+        c[:, rows], no_contact[rows], inside[rows], clear[:, rows] = out
+    rows = np.flatnonzero(~on_t)
+    if rows.size:
+        steps = int(np.ceil(float(length[rows].max()) / contacts.OFF_GRID_STEP_CELLS)) + 2
+        per = max(1, contacts.MAX_POINTS_PER_CHUNK // (offsets.size * steps))
+        for s0 in range(0, rows.size, per):
+            sub = rows[s0:s0 + per]
+            out = contacts._march_chunk(bank, a[sub], unit[sub], length[sub], np.ones(sub.size), offsets, 2,
+                                        None if idx is None else idx[sub], patch_tol, exact=True, compiled=False)
+            c[:, sub], no_contact[sub], inside[sub], clear[:, sub] = out
+    return c, no_contact, inside, clear
+
+
+_KERNEL_CONTACTS = contacts._kernel_contacts
+
+
 def small_objects(seed: int, repeats: int) -> None:
     """``--small``: GP-GPIS-OPT and GP-P times on the shrunk scene, kernel vs sampled march off the grid."""
     params = PlannerParams()
@@ -296,19 +329,17 @@ def small_objects(seed: int, repeats: int) -> None:
     print(f'timing: median of {repeats} runs per method (same seed), planning only; load average before: {_load()}')
     print('\n| cells (mm) | grid (mm) | method | off-grid lines by | median (s) | CPU (s) | P_F | jaws (cells) |')
     print('|---:|---:|---|---|---:|---:|---:|---|')
-    kernel_property = SdfBank.border_positive
-    march = property(lambda self: np.zeros(self.n, dtype=bool))
     for cell_mm in SMALL_CELLS_MM:
         post = synthetic_posterior(resolution=cell_mm * 1e-3)
         g = post.geometry
         for name in ('gp-gpis-opt', 'gp-p'):
-            for label, prop in (('kernel', kernel_property), ('sampled march', march)):
-                SdfBank.border_positive = prop
+            for label, dispatch in (('kernel', _KERNEL_CONTACTS), ('sampled march', march_off_grid)):
+                contacts._kernel_contacts = dispatch
                 try:
                     plan(name, post, params, seed=seed)  # warm-up
                     t_med, _, _, t_cpu, res = _timed_plans(name, post, params, seed, repeats)
                 finally:
-                    SdfBank.border_positive = kernel_property
+                    contacts._kernel_contacts = _KERNEL_CONTACTS
                 uv1, uv2 = g.to_cell(res.jaw1), g.to_cell(res.jaw2)
                 print(f'| {cell_mm:.1f} | {g.width * cell_mm:.0f} | {name} | {label} | {t_med:.3f} | {t_cpu:.3f} | '
                       f'{res.p_f:.3f} | ({uv1[0]:.1f}, {uv1[1]:.1f}) - ({uv2[0]:.1f}, {uv2[1]:.1f}) |', flush=True)
