@@ -1,7 +1,7 @@
 """Planner benchmark: time and P_F of every planner, and vectorised P_F vs a per-sample Python loop.
 
     python -m gpis_grasp_ros.bench planners [--seed N] [--repeats R] [--loop-samples S]
-    python -m gpis_grasp_ros.bench planners --small [--seed N] [--repeats R]
+    python -m gpis_grasp_ros.bench planners --small [--seed N] [--repeats R] [--small-seeds K]
 
 Scene: a 25 x 25 GPIS (5 mm cells) of an "Object A"-like part: a well-observed body and a large
 "transparent" part that the mean shape includes (negative prior mean) with high variance
@@ -321,8 +321,9 @@ def march_off_grid(bank, a, unit, length, offsets, idx, patch_tol):
 _KERNEL_CONTACTS = contacts._kernel_contacts
 
 
-def small_objects(seed: int, repeats: int) -> None:
-    """``--small``: GP-GPIS-OPT and GP-P times on the shrunk scene, kernel vs sampled march off the grid."""
+def small_objects(seed: int, repeats: int, planner_seeds: int = 0) -> None:
+    """``--small``: GP-GPIS-OPT and GP-P times on the shrunk scene, kernel vs sampled march off the grid;
+    with ``planner_seeds`` > 0 also GP-GPIS-OPT's P_F over that many planner seeds on both paths."""
     params = PlannerParams()
     print(f'scene: the benchmark part shrunk to cells of {", ".join(f"{c} mm" for c in SMALL_CELLS_MM)} (25 x 25), '
           f'opening w_g = {params.gripper.max_opening * 1e3:.0f} mm, seed {seed}')
@@ -343,6 +344,18 @@ def small_objects(seed: int, repeats: int) -> None:
                 uv1, uv2 = g.to_cell(res.jaw1), g.to_cell(res.jaw2)
                 print(f'| {cell_mm:.1f} | {g.width * cell_mm:.0f} | {name} | {label} | {t_med:.3f} | {t_cpu:.3f} | '
                       f'{res.p_f:.3f} | ({uv1[0]:.1f}, {uv1[1]:.1f}) - ({uv2[0]:.1f}, {uv2[1]:.1f}) |', flush=True)
+    if planner_seeds > 0:
+        print(f'\nGP-GPIS-OPT P_F over planner seeds 0-{planner_seeds - 1} (one plan each):')
+        for cell_mm in SMALL_CELLS_MM[1:]:
+            post = synthetic_posterior(resolution=cell_mm * 1e-3)
+            for label, dispatch in (('kernel', _KERNEL_CONTACTS), ('sampled march', march_off_grid)):
+                contacts._kernel_contacts = dispatch
+                try:
+                    p_f = [plan('gp-gpis-opt', post, params, seed=k).p_f for k in range(planner_seeds)]
+                finally:
+                    contacts._kernel_contacts = _KERNEL_CONTACTS
+                print(f'  {cell_mm:.1f} mm, {label}: {" ".join(f"{p:.3f}" for p in p_f)} (mean {np.mean(p_f):.3f})',
+                      flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -354,9 +367,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--small', action='store_true',
                     help='small objects: the scene shrunk to 1.6 and 1.2 mm cells, lines leaving the padded grid by '
                          'the kernel vs the sampled march')
+    ap.add_argument('--small-seeds', type=int, default=0,
+                    help='with --small: GP-GPIS-OPT P_F over planner seeds 0..N-1 on both paths (1.6 and 1.2 mm)')
     args = ap.parse_args(argv)
     if args.small:
-        small_objects(args.seed, args.repeats)
+        small_objects(args.seed, args.repeats, args.small_seeds)
         return 0
 
     post = synthetic_posterior()
