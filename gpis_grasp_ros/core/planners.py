@@ -153,6 +153,11 @@ class PlannerParams:
     max_sampling_rounds: int = 20  # heuristic batches tried when looking for valid initial grasps
     seed: int | None = None
 
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.uncertainty_penalty) and self.uncertainty_penalty >= 0):
+            raise ValueError(f'uncertainty penalty λ must be a finite number >= 0 (per cell² of SDF variance), '
+                             f'got {self.uncertainty_penalty}')
+
     @property
     def beta(self) -> float:
         """β of eq. 5 (default cos(arctan γ))."""

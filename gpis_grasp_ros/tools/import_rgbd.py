@@ -66,7 +66,8 @@ ORACLE_NOISE_M2 = 1e-6
 
 def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',
                  trials: int = 20, seed: int = 0, oracle: bool = False, grid_size: int = 25,
-                 method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0) -> RealEvaluation:
+                 method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0,
+                 uncertainty_penalty: float | None = None) -> RealEvaluation:
     """Segment an imported capture as segmentation_node does (one frame, ``target:=pixel``), fit the
     GPIS, plan GP-GPIS-OPT (or ``method``, one of :data:`~gpis_grasp_ros.core.planners.METHODS`) and execute it
     ``trials`` times on the bag's ground truth (through the camera frame: plan grid → camera → ground-truth grid).
@@ -75,13 +76,16 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
     the planning grid's cell centres (0 or 100), every cell trained with ``ORACLE_NOISE_M2`` - the best any
     perception can give the planner at the grid's resolution. The IoUs are still the perceived ones.
     ``grid_size``: M of the M x M planning grid (segmentation_node's ``grid_size``); ``clear_body_height_m``: a
-    clear target body's known height (m; segmentation_node's ``clear_body_height``, 0 = the priors)."""
-    return evaluate_seeds(path, target_px, [seed], sensor, trials, oracle, grid_size, method, clear_body_height_m)[0]
+    clear target body's known height (m; segmentation_node's ``clear_body_height``, 0 = the priors);
+    ``uncertainty_penalty``: λ of eq. 4/6 per cell² (planner_node's ``uncertainty_penalty``; None = its default)."""
+    return evaluate_seeds(path, target_px, [seed], sensor, trials, oracle, grid_size, method, clear_body_height_m,
+                          uncertainty_penalty)[0]
 
 
 def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequence[int],
                    sensor: str = 'realsense_d400', trials: int = 20, oracle: bool = False, grid_size: int = 25,
-                   method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0) -> list[RealEvaluation]:
+                   method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0,
+                   uncertainty_penalty: float | None = None) -> list[RealEvaluation]:
     """:func:`evaluate_bag` for each planner and execution seed of ``seeds``: the capture is segmented and the
     GPIS fitted once."""
     scene = load_bag(path, frames=1)
@@ -105,9 +109,11 @@ def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequ
     if len(others):
         on_target = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(others))[0]) < 0.01
         others = others[~on_target]
+    planner = PlannerParams() if uncertainty_penalty is None else PlannerParams(
+        uncertainty_penalty=float(uncertainty_penalty))
     out = []
     for seed in seeds:
-        grasp = plan(method, posterior, PlannerParams(), seed=seed)
+        grasp = plan(method, posterior, planner, seed=seed)
         if not grasp.success:
             out.append(RealEvaluation(str(path), occupancy_iou, mean_shape_iou, 0, trials, float('nan'), float('nan'),
                                       result.objects_seen, result.table.tilt_deg, grasp.message))
@@ -155,6 +161,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--clear-body-height', type=float, default=0.0, metavar='M',
                    help='--evaluate: a clear target body\'s known height in m (segmentation_node\'s '
                         'clear_body_height; default 0 = the priors)')
+    p.add_argument('--lambda', dest='uncertainty_penalty', type=float, default=None, metavar='L',
+                   help='--evaluate: λ of eq. 4/6 per cell² of SDF variance (planner_node\'s uncertainty_penalty; '
+                        'default: its default, 2)')
     p.add_argument('--oracle', action='store_true',
                    help='--evaluate: plan on the ground truth sampled at the planning grid (the best any perception '
                         'can do at that resolution) instead of the perceived shape')
@@ -173,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         seeds = range(args.seed, args.seed + args.seeds)
         try:
             evs = evaluate_seeds(args.output, tuple(args.target_pixel), seeds, args.sensor, args.trials, args.oracle,
-                                 args.grid_size, args.method, args.clear_body_height)
+                                 args.grid_size, args.method, args.clear_body_height, args.uncertainty_penalty)
         except (ValueError, FileNotFoundError) as exc:
             print(f'import-rgbd: error: {exc}', file=sys.stderr)
             return 2

@@ -183,3 +183,11 @@ def test_no_feasible_restart_is_reported_by_both_gp_g_variants() -> None:
         r = plan(method, POST, params, seed=2)
         assert not r.feasible and not any(x.feasible for x in r.restarts)
         assert 'no restart satisfied all constraints' in r.message
+
+
+@pytest.mark.parametrize('lam', [-0.5, float('nan'), float('inf')])
+def test_uncertainty_penalty_must_be_finite_and_non_negative(lam: float) -> None:
+    """λ of eq. 4/6 weighs a penalty: a negative λ would reward variance, NaN / ∞ have no meaning."""
+    with pytest.raises(ValueError, match='uncertainty penalty'):
+        PlannerParams(uncertainty_penalty=lam)
+    assert PlannerParams(uncertainty_penalty=0.0).uncertainty_penalty == 0.0

@@ -126,6 +126,21 @@ def test_evaluate_command_runs_seeds_the_oracle_and_other_planners(capsys):
     assert main(args + ['--clear-body-height', '-0.01']) == 2
     assert 'clear_body_height_m' in capsys.readouterr().err
 
+    # --lambda reaches the planner: on the flower box seed 0 eq. 6 at the paper's λ = 2 trades P̃_F for less
+    # contact variance (README: 8 of 20, P_F 0.78); without the penalty (λ = 0) the grasp differs (14 of 20, 0.86)
+    u, v = TARGETS[FLOWER]
+    flower = [str(FLOWER), '--evaluate', '--target-pixel', str(u), str(v), '--seed', '0']
+
+    def p_f(text: str) -> float:
+        return float(text.split('(P_F ')[1].split(')')[0])
+
+    assert main(flower) == 0
+    default = p_f(capsys.readouterr().out)
+    assert main(flower + ['--lambda', '0']) == 0
+    assert p_f(capsys.readouterr().out) > default + 0.04
+    assert main(flower + ['--lambda', '-1']) == 2
+    assert 'uncertainty penalty' in capsys.readouterr().err
+
 
 def test_real_flower_box_is_split_from_the_notebook_it_touches():
     """The clear box stands against the notebook, whose evidence reaches the image border: the flat
