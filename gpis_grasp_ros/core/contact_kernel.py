@@ -28,6 +28,9 @@ crossings in all three. When every border node of a padded grid is positive
 (:func:`border_positive`) the extrapolated field is positive everywhere off the grid - the border
 is linear between its nodes and the distance only adds - and only the part over the grid is walked.
 The jaw clearances and the start-inside test use the extended field at the line ends.
+
+``cache=True``: the machine code is cached next to this file (``__pycache__``), so only the first
+import on a machine pays the compile time (a few seconds).
 """
 
 from __future__ import annotations
