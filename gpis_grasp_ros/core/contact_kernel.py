@@ -384,14 +384,13 @@ def exact_contacts(grids, lipschitz, positive, index, ax, ay, ux, uy, length, of
             clear1 = min(clear1, f1)
             if f0 <= 0 or f1 <= 0:
                 into = True
-            has[0, k] = False
             has[1, k] = False
             # the part of the line over the padded grid, as distances from jaw 1 [t_in, t_out] and from
             # jaw 2 [ln - t_out, ln - t_in]; the whole line (0, ln) when it stays on the grid
             t_in, t_out = _clip(ox, oy, vx, vy, ln, wp, hp)
             # where a zero can be: the whole line, or only over the grid when the border is positive
-            last1 = min(t_out, ln) if pos else ln
-            last2 = min(ln - t_in, ln) if pos else ln
+            last1 = t_out if pos else ln
+            last2 = ln - t_in if pos else ln
             s1, h1 = _line_crossing(grid, ox, oy, vx, vy, reach1, lip, f0, res, pos, t_in, t_out)
             has[0, k] = h1
             if h1 or reach1 < last1:  # a crossing, or the walk stopped at the window: try from jaw 2

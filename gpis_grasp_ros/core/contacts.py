@@ -772,6 +772,20 @@ def _kernel_contacts(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.
     return c, no_contact, inside, clear
 
 
+def on_padded_grid(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray,
+                   offsets: np.ndarray) -> np.ndarray:
+    """(T,) bool: every face line of each trial (jaw 1 at ``a``, closing along ``unit`` for ``length``
+    cells, lines at ``offsets`` cells across the jaw) lies on the padded grid - a conservative test on the
+    box spanned by both jaw faces."""
+    reach = float(np.abs(offsets).max())
+    b = a + length[:, None] * unit
+    lo = np.minimum(a, b) - reach
+    hi = np.maximum(a, b) + reach
+    pad = bank.pad
+    return ((lo >= -pad).all(axis=1) & (hi[:, 0] <= bank.geometry.width - 1 + pad)
+            & (hi[:, 1] <= bank.geometry.height - 1 + pad))
+
+
 def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndarray, n_seg: np.ndarray,
                  offsets: np.ndarray, n_steps: int, idx: np.ndarray | None, patch_tol: float, exact: bool = True,
                  compiled: bool = False):
@@ -785,14 +799,7 @@ def _march_chunk(bank: SdfBank, a: np.ndarray, unit: np.ndarray, length: np.ndar
     if exact and compiled:
         return _kernel_contacts(bank, a, unit, length, offsets, idx, patch_tol)
     n_lines = offsets.size
-    # All samples lie in the box spanned by both jaw faces (conservative bound), per trial.
-    reach = float(np.abs(offsets).max())
-    b = a + length[:, None] * unit
-    lo = np.minimum(a, b) - reach
-    hi = np.maximum(a, b) + reach
-    pad = bank.pad
-    on_t = ((lo >= -pad).all(axis=1) & (hi[:, 0] <= bank.geometry.width - 1 + pad)
-            & (hi[:, 1] <= bank.geometry.height - 1 + pad))
+    on_t = on_padded_grid(bank, a, unit, length, offsets)
     on_padded = bool(on_t.all())
     perp = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
     # Line origins (T, L) and samples (T, L, N) in cells.

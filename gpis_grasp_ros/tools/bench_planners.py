@@ -294,11 +294,7 @@ def march_off_grid(bank, a, unit, length, offsets, idx, patch_tol):
     face lines stay on the padded grid by the compiled kernel, the others by the numpy path's sampled march
     (``OFF_GRID_STEP_CELLS``), in chunks of at most ``MAX_POINTS_PER_CHUNK`` samples. Same arguments and
     results as :func:`contacts._kernel_contacts`."""
-    reach = float(np.abs(offsets).max())
-    b = a + length[:, None] * unit
-    lo, hi = np.minimum(a, b) - reach, np.maximum(a, b) + reach
-    g, pad = bank.geometry, bank.pad
-    on_t = (lo >= -pad).all(axis=1) & (hi[:, 0] <= g.width - 1 + pad) & (hi[:, 1] <= g.height - 1 + pad)
+    on_t = contacts.on_padded_grid(bank, a, unit, length, offsets)
     c, no_contact = np.zeros((2, a.shape[0], 2)), np.zeros(a.shape[0], dtype=bool)
     inside, clear = np.zeros(a.shape[0], dtype=bool), np.zeros((2, a.shape[0]))
     rows = np.flatnonzero(on_t)

@@ -88,6 +88,8 @@ def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequ
                    uncertainty_penalty: float | None = None) -> list[RealEvaluation]:
     """:func:`evaluate_bag` for each planner and execution seed of ``seeds``: the capture is segmented and the
     GPIS fitted once."""
+    planner = PlannerParams() if uncertainty_penalty is None else PlannerParams(
+        uncertainty_penalty=float(uncertainty_penalty))  # checked before the segmentation
     scene = load_bag(path, frames=1)
     if scene.true_sdf is None or scene.true_geometry is None:
         raise ValueError(f'{path}: no ground truth in the bag')
@@ -109,8 +111,6 @@ def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequ
     if len(others):
         on_target = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(others))[0]) < 0.01
         others = others[~on_target]
-    planner = PlannerParams() if uncertainty_penalty is None else PlannerParams(
-        uncertainty_penalty=float(uncertainty_penalty))
     out = []
     for seed in seeds:
         grasp = plan(method, posterior, planner, seed=seed)
