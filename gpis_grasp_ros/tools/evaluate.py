@@ -44,7 +44,9 @@ by an interruption is discarded), failed tasks are tried again; ``run.json`` rec
 and the dataset digest, and a resume with other settings is refused (use ``--fresh``).
 
 Outputs: ``results.jsonl``, ``results.csv`` (task order), ``failures.jsonl``, ``run.json`` and
-``summary.md`` (per material class × size class × method: P_F, simulated success, planning time).
+``summary.md`` (per material class × size class × method: P_F, simulated success, planning time; then per
+class the GPIS near the true surface, one value per object: mean-shape IoU, the mean's bias, σ and the z RMS -
+how far the posterior is from calibrated where the grasps touch).
 """
 
 from __future__ import annotations
@@ -73,6 +75,8 @@ import numpy as np
 from gpis_grasp_ros.tools.seeds import derive_seed
 
 EXECUTORS = ('serial', 'process', 'dask')
+#: Per-object columns on the GPIS near the true surface (see :class:`ObjectModel`); NaN without a GPIS or truth.
+SURFACE_COLUMNS = ('gp_z_rms_near_surface', 'gp_bias_near_surface_cells', 'gp_sd_near_surface_cells')
 #: Columns that may differ between executors and runs (wall-clock times, worker identity, memory).
 TIMING_COLUMNS = ('task_time_s', 'task_cpu_s', 'planning_time_s', 'evaluation_time_s', 'gpis_time_s', 'gpis_cached',
                   'worker', 'max_rss_mb')
@@ -152,6 +156,9 @@ class ObjectModel:
     message: str
     gpis_time_s: float
     mean_shape_iou: float
+    #: the GPIS near the true surface (``calibration.gp_z_scores``, planning cells within 2 cells of it): z RMS of
+    #: (sdf_true - mu) / sigma, mean mu - sdf_true (cells; < 0: the mean shape bulges out), mean sigma (cells)
+    surface: dict[str, float] = field(default_factory=dict)
 
 
 @functools.lru_cache(maxsize=4)
@@ -176,9 +183,17 @@ def _object_model_cached(entry_json: str, grid_size: int, frames: int) -> Object
         mean_inside = posterior.mean < 0
         union = np.count_nonzero(true_inside | mean_inside)
         iou = float(np.count_nonzero(true_inside & mean_inside) / union) if union else float('nan')
+    surface = {}
+    if scene.true_sdf is not None:
+        from gpis_grasp_ros.tools.benchmark.calibration import gp_z_scores
+        from gpis_grasp_ros.tools.benchmark.evaluation import TrueShape
+
+        z = gp_z_scores(posterior, TrueShape(scene.true_sdf, scene.true_geometry, posterior.geometry))
+        surface = {k: z[k] for k in SURFACE_COLUMNS}
     status = 'ok' if scene.true_sdf is not None else 'no_ground_truth'
     return ObjectModel(posterior, scene.true_sdf, scene.true_geometry, scene.true_center_of_mass, status,
-                       '' if status == 'ok' else 'the bag has no /ground_truth/sdf', time.perf_counter() - t0, iou)
+                       '' if status == 'ok' else 'the bag has no /ground_truth/sdf', time.perf_counter() - t0, iou,
+                       surface)
 
 
 def object_model(entry: dict[str, Any], settings: EvalSettings) -> tuple[ObjectModel, bool]:
@@ -232,6 +247,7 @@ def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
     model, cached = object_model(e, task.settings)
     planner_seed = derive_seed('planner', int(task.seed), e['id'])
     row.update({'planner_seed': planner_seed, 'mean_shape_iou': model.mean_shape_iou})
+    row.update({k: model.surface.get(k, float('nan')) for k in SURFACE_COLUMNS})
     nan = float('nan')
     result_cols = {'success': False, 'message': model.message, 'jaw1_x': nan, 'jaw1_y': nan, 'jaw2_x': nan,
                    'jaw2_y': nan, 'width_m': nan, 'p_f': nan, 'p_f_std_error': nan, 'q_f_mean': nan,
@@ -688,6 +704,30 @@ def summary_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ('material
     return '\n'.join(lines)
 
 
+def surface_table(rows: Sequence[dict[str, Any]],
+                  by: Sequence[str] = ('material_class', 'size_class', 'camera')) -> str:
+    """Markdown: per group, the GPIS near the true surface, one value per object (median over the objects with a
+    GPIS and a ground truth): mean-shape IoU, bias mu - sdf_true (cells; < 0: the mean shape bulges out), sigma
+    (cells) and the z RMS of (sdf_true - mu) / sigma (1 for a calibrated posterior). '' when no row has them."""
+    per_object: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        if all(math.isfinite(float(r.get(k, float('nan')))) for k in SURFACE_COLUMNS):
+            per_object.setdefault(r['object'], r)
+    if not per_object:
+        return ''
+    objs = list(per_object.values())
+    lines = [f"| {' | '.join(by)} | objects | mean-shape IoU | bias near surface (cells) | σ near surface (cells) "
+             '| z RMS near surface |', '|' + '---|' * (len(by) + 5)]
+    for dim in ('all', *by):
+        for g in (['all'] if dim == 'all' else sorted({o[dim] for o in objs})):
+            sel = objs if dim == 'all' else [o for o in objs if o[dim] == g]
+            med = [float(np.median([float(o[k]) for o in sel])) for k in ('mean_shape_iou', *SURFACE_COLUMNS)]
+            cells = [('all' if dim == 'all' and i == 0 else (g if d == dim else '')) for i, d in enumerate(by)]
+            lines.append(f"| {' | '.join(cells)} | {len(sel)} | {med[0]:.2f} | {med[2]:+.2f} | {med[3]:.2f} | "
+                         f'{med[1]:.1f} |')
+    return '\n'.join(lines)
+
+
 # =========================================================================== throughput
 def _noop(i: int) -> int:
     return i
@@ -909,6 +949,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f'gpis-grasp evaluate: {err}', file=sys.stderr)
         return 2
     table = summary_table(run.rows)
+    surface = surface_table(run.rows)
+    if surface:
+        table += '\n\nThe GPIS near the true surface (one value per object; median over the objects):\n\n' + surface
     (out / 'summary.md').write_text(table + '\n', encoding='utf8')
     print(table)
     where = f'Dask at {args.scheduler}' if args.executor == 'dask' and args.scheduler != 'local' else \

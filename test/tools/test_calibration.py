@@ -89,3 +89,36 @@ def test_spread_by_value_covers_the_range_without_repeats() -> None:
     # Evenly spread: every tenth of [0, 1] holds some of the picks.
     assert np.all(np.histogram(v, bins=10, range=(0, 1))[0] > 0)
     assert len(cal.spread_by_value(values[:5], 50)) == 5
+
+
+class _Disc:
+    """A disc's exact SDF (m) as the true shape: ``values_at(xy)``."""
+
+    def __init__(self, centre: tuple[float, float], radius: float) -> None:
+        self.centre, self.radius = np.asarray(centre), radius
+
+    def values_at(self, xy: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(np.asarray(xy) - self.centre, axis=-1) - self.radius
+
+
+@pytest.mark.parametrize('offset_cells, sd_cells', [(0.5, 0.25), (-0.3, 0.1), (0.0, 1.0)])
+def test_gp_z_scores_of_a_shifted_mean_with_known_sigma(offset_cells: float, sd_cells: float) -> None:
+    from gpis_grasp_ros.core.gpis import GpisPosterior, KernelParams
+    from gpis_grasp_ros.core.grid import GridGeometry
+
+    res = 0.004
+    g = GridGeometry(0.0, 0.0, res, 25, 25)
+    truth = _Disc((0.05, 0.047), 0.03)
+    sdf = truth.values_at(g.cell_centers())
+    # mean = truth shifted by `offset` (the mean shape dilated by it), sigma known: z = offset / sigma everywhere
+    mean = sdf - offset_cells * res
+    post = GpisPosterior(g, mean, np.full(g.shape, (sd_cells * res) ** 2), np.zeros(g.shape + (2,)),
+                         np.zeros((g.width * g.height, 1)), KernelParams(1e-4, 0.01, -0.01))
+    z = cal.gp_z_scores(post, truth)
+    assert z['gp_bias_near_surface_cells'] == pytest.approx(-offset_cells, abs=1e-9)
+    assert z['gp_sd_near_surface_cells'] == pytest.approx(sd_cells, rel=1e-9)
+    assert z['gp_z_rms_near_surface'] == pytest.approx(abs(offset_cells) / sd_cells, rel=1e-9)
+    assert z['gp_coverage95_near_surface'] == (1.0 if abs(offset_cells) / sd_cells < 1.96 else 0.0)
+    # "near the surface" = within 2 cells of the true surface: a ring of the disc's cells, not the whole grid
+    near = np.abs(sdf) < 2 * res
+    assert 0 < near.sum() < sdf.size / 2

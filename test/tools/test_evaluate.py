@@ -63,6 +63,20 @@ def test_serial_rows(serial, tasks):
             assert 0 < r['width_m'] <= 0.09 + 1e-9
         elif r['status'] == 'no_gpis':
             assert r['message'] and not r['success'] and r['sim_trials'] == 0
+    # the GPIS near the true surface: per object (both methods carry the same values), NaN without a GPIS
+    for r in rows:
+        vals = [r[k] for k in ev.SURFACE_COLUMNS]
+        if r['status'] == 'no_gpis':
+            assert all(np.isnan(v) for v in vals)
+        else:
+            z_rms, bias, sd = vals
+            # a GPIS of the same shape: its mean within a few cells of the truth, sigma positive (the frames of the
+            # planning grid and the truth agree; a mix-up would put the surface tens of cells off)
+            assert z_rms > 0 and sd > 0 and abs(bias) < 3.0
+    surface = {}
+    for r in rows:
+        surface.setdefault(r['object'], set()).add(repr([r[k] for k in ev.SURFACE_COLUMNS]))
+    assert all(len(v) == 1 for v in surface.values())
     # common random numbers: both methods of an object share the planner seed
     by_obj = {}
     for r in rows:
@@ -170,6 +184,21 @@ def test_summary_and_projection_tables():
     table = ev.summary_table(rows)
     # no grasp counts as P_F 0 and success 0; the no-GPIS task is counted apart
     assert '| dark |  | gp-m | 3 | 1 | 0.400 | 0.250 | 0.200 |' in table
+    assert ev.surface_table(rows) == ''  # no object has the surface columns
+    surf = [{'object': o, 'method': m, 'material_class': mat, 'size_class': size, 'camera': cam,
+             'mean_shape_iou': iou, 'gp_z_rms_near_surface': z, 'gp_bias_near_surface_cells': b,
+             'gp_sd_near_surface_cells': sd}
+            for o, mat, size, cam, iou, z, b, sd in (('a', 'dark', 'small', 'head', 0.5, 2.0, -0.4, 0.1),
+                                                    ('b', 'dark', 'large', 'head', 0.7, 4.0, -0.2, 0.3),
+                                                    ('c', 'opaque', 'large', 'top-down', 0.9, 1.0, 0.0, 0.2))
+            for m in ('gp-m', 'gp-gpis-opt')]
+    surf.append({**surf[0], 'object': 'd', 'gp_z_rms_near_surface': float('nan')})  # no GPIS: left out
+    table = ev.surface_table(surf)
+    # one value per object (not per task), medians over the objects of the group
+    assert '| all |  |  | 3 | 0.70 | -0.20 | 0.20 | 2.0 |' in table
+    assert '| dark |  |  | 2 | 0.60 | -0.30 | 0.20 | 3.0 |' in table
+    assert '|  | large |  | 2 | 0.80 | -0.10 | 0.25 | 2.5 |' in table
+    assert '|  |  | top-down | 1 | 0.90 | +0.00 | 0.20 | 1.0 |' in table
     proj = ev.projection_markdown(task_s=2.0, overhead_s=0.5, tasks=100, cores_per_machine=2, machines=(1, 5))
     # 1 machine: ceil(100 / 2) x 2.5 s = 125 s; 5 machines: ceil(100 / 10) x 2.5 s = 25 s
     assert '| 1 | 2 | 2.1 | 0.80 |' in proj and '| 5 | 10 | 0.4 | 4.00 |' in proj
