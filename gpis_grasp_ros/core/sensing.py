@@ -32,11 +32,18 @@ Pipeline (one call, :func:`segment_frames`), for a camera looking down at a tabl
    the table behind it, or a blend - and its return is moved to where its ray enters that solid (the
    farthest its first surface can be). A top-down camera sees every column end-on: nothing is moved. On
    the real D435 captures the clear flower box's lower face, which returned the table 2-5 cm behind it,
-   lands on the box.
+   lands on the box. **The sensor's shadow** (``shadow_test``, default on, :func:`occlusion_shadow_pixels`):
+   a structured-light sensor needs its projector to light a point, a stereo sensor its second imager to see
+   it (``SensorModel.occluder_x_m``); table beside an object hidden from that viewpoint has no return. A
+   no-return pixel whose colour is the table's, whose table point that viewpoint cannot see past the solid
+   columns and that lies beside (not under) them, is table the sensor did not measure - not missing =
+   object - where the visual hull cannot tell it from the object (the column over its table point images
+   shorter than ``SHADOW_HULL_SPAN_PX``: a near top-down view; a tilted camera's prism test decides, step 5).
 4. **Occupancy per pixel.** Inverse-variance combination of the masks (depth trusted more than
    colour: a transparent part seen only in colour does not enter the *mean* shape, Object A of
    the paper): o = (p_d / v_d + p_c / v_c) / (1 / v_d + 1 / v_c), v = p (1 - p) + floor.
-   Pixels without a valid return are **missing** and count as object (o = 1), as in the paper.
+   Pixels without a valid return are **missing** and count as object (o = 1), as in the paper (except the
+   sensor's shadow above: unmeasured table, like a hole off the object's visual hull).
 5. **Target isolation in the table plane.** Evidence = (o, p_d or p_c > 0.5, or missing), only
    above the plane (h > -band, below ``max_object_height_m``), over the table's extent (the convex
    hull of the plane's inliers) and inside the region of interest (``roi_px`` pixel box and/or

@@ -328,6 +328,11 @@ def test_sensor_models():
     assert custom.sigma(2.0) == pytest.approx(0.009) and custom.quantisation(2.0) == 0.0005
     with pytest.raises(ValueError):
         SensorModel('custom', -1.0)
+    # the second viewpoint whose shadow has no return: Carmine's projector, the D435's right imager
+    assert (SensorModel.named('carmine').occluder_x_m, d400.occluder_x_m) == (0.075, 0.050)
+    for bad in (float('nan'), float('inf'), 1.5):
+        with pytest.raises(ValueError, match='occluder'):
+            SensorModel('custom', 0.001, occluder_x_m=bad)
     with pytest.raises(ValueError, match='unknown sensor'):
         SensorModel.named('kinect_v9')
     rng = np.random.default_rng(0)

@@ -97,6 +97,10 @@ def test_perception_model_switches_are_segmentation_parameters():
         assert node.params.see_through_test is True is d.see_through_test
         assert node.set_parameters([Parameter('see_through_test', value=False)])[0].successful
         assert node.params.see_through_test is False
+        assert node.params.shadow_test is True is d.shadow_test
+        assert node.set_parameters([Parameter('shadow_test', value=False)])[0].successful
+        assert node.params.shadow_test is False
+        assert node.params.sensor.occluder_x_m == 0.075  # carmine's projector (sensor_model is read-only)
         assert node.params.clear_body_height_m == 0.0 == d.clear_body_height_m  # the priors
         assert node.set_parameters([Parameter('clear_body_height', value=0.061)])[0].successful
         assert node.params.clear_body_height_m == 0.061

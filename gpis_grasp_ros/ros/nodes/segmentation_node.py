@@ -84,7 +84,10 @@ def perception_parameters(node: Node, defaults: sensing.SensingParams) -> dict:
         declare(node, 'sensor_quantisation_quadratic', 0.00285, 'custom sensor: q2 (1/m) in q = q2 z^2 + q0',
                 low=0.0, high=1.0, read_only=True),
         declare(node, 'sensor_quantisation_constant', 0.0, 'custom sensor: q0 (m)', low=0.0, high=1.0,
-                read_only=True))
+                read_only=True),
+        declare(node, 'sensor_occluder_x', 0.0, 'custom sensor: x (m, camera frame) of its projector or second '
+                'imager, whose shadow has no return (0 = none; carmine 0.075, realsense_d400 0.050)',
+                low=-1.0, high=1.0, read_only=True))
     plane = _optional_box(declare(node, 'table_plane', [0.0, 0.0, 0.0, 0.0],
                                   'table plane a x + b y + c z + d = 0 in the camera frame (m); all 0 = fit it '
                                   '(robust MSAC over the whole cloud)'), 'table_plane')
@@ -182,6 +185,11 @@ class SegmentationNode(GuardedNode):
                                      'a return behind the solid under a point seen above the table (a clear part '
                                      'seen through) is moved to where its ray enters that solid; false: kept '
                                      'where the sensor put it'),
+            shadow_test=declare(self, 'shadow_test', bool(defaults.shadow_test),
+                                'no-return, table-coloured pixels on table the sensor\'s projector or second imager '
+                                'cannot see beside an object (sensor_model\'s occluder), where the visual hull cannot '
+                                'tell them from the object (a near top-down view), are unmeasured table; false: '
+                                'missing = object'),
             clear_body_prism=declare(self, 'clear_body_prism', bool(defaults.clear_body_prism),
                                      'a clear target (under a quarter of it seen in depth) is the prism under its '
                                      'silhouette, of the height at which it is as narrow as high or as deep as wide '
@@ -256,7 +264,7 @@ class SegmentationNode(GuardedNode):
                          chroma_z_min=float(v['chroma_z_min']), exclude_uncertain=bool(v['exclude_uncertain']),
                          clear_body_prism=bool(v['clear_body_prism']), train_clear_body=bool(v['train_clear_body']),
                          clear_body_height_m=float(v['clear_body_height']),
-                         see_through_test=bool(v['see_through_test']))
+                         see_through_test=bool(v['see_through_test']), shadow_test=bool(v['shadow_test']))
         if target_needs_point(target) and len(v['target_point']) != 2:
             raise ValueError(f"target '{target}' needs target_point with 2 numbers")
         # min_frames above frames_to_average means: only complete bursts make an estimate
