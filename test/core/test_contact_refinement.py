@@ -46,7 +46,8 @@ def estimates() -> list[tuple[str, str, float, float, float, float]]:
 def test_halving_step_and_spacing_moves_p_f_by_less_than_one_standard_error(estimates) -> None:
     assert len(estimates) >= 12  # most bags x both methods planned
     for name, method, p_default, p_halved, _, se in estimates:
-        assert abs(p_halved - p_default) < max(se, 1.0 / N_SAMPLES), (name, method, p_default, p_halved, se)
+        # at most one standard error; at P_F = 1 (se = 0) one sample of the N may flip (1 / N, up to rounding)
+        assert abs(p_halved - p_default) <= max(se, 1.0 / N_SAMPLES) + 1e-12, (name, method, p_default, p_halved, se)
 
 
 def test_the_old_sampled_march_was_biased(estimates) -> None:
