@@ -771,27 +771,28 @@ def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray
 
 
 def column_zbuffer(top: np.ndarray, h: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,
-                   origin: np.ndarray, max_samples: int = 64) -> tuple[np.ndarray, int, int]:
+                   origin: np.ndarray, bounds: tuple[int, int, int, int], max_samples: int = 64) -> np.ndarray:
     """Depth buffer of the solid columns standing under the points ``top`` (n, 3) (camera frame, m; heights
     ``h`` (n,) m along the table normal), seen by a pinhole camera with this image's focal lengths, principal
-    point and orientation but centred at ``origin`` (camera frame, m).
+    point and orientation but centred at ``origin`` (camera frame, m), over its pixels ``bounds`` = (u0, v0, u1,
+    v1) (inclusive; they may lie beyond this image's bounds: a viewpoint 5-8 cm aside).
 
-    Returns ``(zbuf, u0, v0)``: ``zbuf[v - v0, u - u0]`` is the nearest depth (m, along the optical axis) at
-    which the ray of that camera's pixel (u, v) meets a column, inf where it meets none. The buffer spans the
-    columns' image, which may lie beyond this image's bounds (a viewpoint 5-8 cm aside). Each column is sampled
-    at about one sample per pixel of its image, from its foot to the point."""
+    Returns ``zbuf`` (v1 - v0 + 1, u1 - u0 + 1): ``zbuf[v - v0, u - u0]`` is the nearest depth (m, along the
+    optical axis) at which the ray of that camera's pixel (u, v) meets a column, inf where it meets none. Each
+    column is sampled at about one sample per pixel of its image (at most ``max_samples``), foot to point."""
+    u0, v0, u1, v1 = (int(b) for b in bounds)
+    zbuf = np.full((max(v1 - v0 + 1, 1), max(u1 - u0 + 1, 1)), np.inf)
     origin = np.asarray(origin, dtype=np.float64)
     foot = np.asarray(top, dtype=np.float64) - h[:, None] * table.n - origin
     top = np.asarray(top, dtype=np.float64) - origin
-    uv_top, uv_foot = intrinsics.project(top), intrinsics.project(foot)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        uv_top, uv_foot = intrinsics.project(top), intrinsics.project(foot)
     ok = (np.isfinite(uv_top).all(axis=-1) & np.isfinite(uv_foot).all(axis=-1) & (foot[:, 2] > 0)
           & (top[:, 2] > 0))
     top, foot, h, uv_top, uv_foot = top[ok], foot[ok], h[ok], uv_top[ok], uv_foot[ok]
     if top.shape[0] == 0:
-        return np.full((1, 1), np.inf), 0, 0
-    lo = np.floor(np.minimum(uv_top, uv_foot).min(axis=0)).astype(np.int64) - 1
-    hi = np.ceil(np.maximum(uv_top, uv_foot).max(axis=0)).astype(np.int64) + 2
-    zbuf = np.full((int(hi[1] - lo[1]), int(hi[0] - lo[0])), np.inf)
+        return zbuf
+    lo = np.array([u0, v0])
     n = np.clip(np.ceil(np.linalg.norm(uv_top - uv_foot, axis=-1)).astype(np.int64) + 1, 2, max_samples)
     ends = np.cumsum(n)
     bounds = np.searchsorted(ends, np.arange(SEE_THROUGH_CHUNK, int(ends[-1]), SEE_THROUGH_CHUNK), side='right')
@@ -803,8 +804,9 @@ def column_zbuffer(top: np.ndarray, h: np.ndarray, table: TableFrame, intrinsics
         frac = (np.arange(column.size) + (ends[a] - n[a]) - start) / (n[column] - 1)  # 0 = foot ... 1 = the point
         samples = foot[column] + (frac * h[column])[:, None] * table.n
         uv = np.round(intrinsics.project(samples)).astype(np.int64) - lo
-        np.minimum.at(zbuf, (uv[:, 1], uv[:, 0]), samples[:, 2])
-    return zbuf, int(lo[0]), int(lo[1])
+        keep = (uv[:, 0] >= 0) & (uv[:, 0] < zbuf.shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < zbuf.shape[0])
+        np.minimum.at(zbuf, (uv[keep, 1], uv[keep, 0]), samples[keep, 2])
+    return zbuf
 
 
 def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray, candidates: np.ndarray,
@@ -842,10 +844,6 @@ def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.nd
         return out
     origin = np.array([off, 0.0, 0.0])
     hts = np.nan_to_num(height[solid])
-    zbuf, u0, v0 = column_zbuffer(points[solid], hts, table, intrinsics, origin)
-    big = np.float32(1e9)
-    zbuf = cv2.erode(np.where(np.isfinite(zbuf), zbuf, big).astype(np.float32), np.ones((3, 3), np.uint8),
-                     borderType=cv2.BORDER_CONSTANT, borderValue=float(big)).astype(np.float64)
     hit_pts, hit = table.ray_intersection(intrinsics.rays())
     cand = candidates & hit
     if not cand.any():
@@ -863,8 +861,16 @@ def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.nd
         vs, us, p = vs[keep], us[keep], p[keep]
         if vs.size == 0:
             return out
+    # the second viewpoint's depth buffer of the columns, over the pixels where the candidates' table points fall
     q = p - origin
-    uv = np.round(intrinsics.project(q)).astype(np.int64) - np.array([u0, v0])
+    uv_q = np.round(intrinsics.project(q)).astype(np.int64)
+    u0, v0 = uv_q.min(axis=0) - 2
+    u1, v1 = uv_q.max(axis=0) + 2
+    zbuf = column_zbuffer(points[solid], hts, table, intrinsics, origin, (u0, v0, u1, v1))
+    big = np.float32(1e9)
+    zbuf = cv2.erode(np.where(np.isfinite(zbuf), zbuf, big).astype(np.float32), np.ones((3, 3), np.uint8),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=float(big)).astype(np.float64)
+    uv = uv_q - np.array([u0, v0])
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < zbuf.shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < zbuf.shape[0])
     u, v = np.clip(uv[:, 0], 0, zbuf.shape[1] - 1), np.clip(uv[:, 1], 0, zbuf.shape[0] - 1)
     tol = 3.0 * math.sqrt(2.0) * sensor.sigma(q[:, 2]) + slack_m
