@@ -148,5 +148,6 @@ def test_the_model_of_the_second_imager_on_a_real_d435_capture():
     # beyond what the camera's own view hides: the second imager's shadow beside the objects
     extra_right, extra_left = right & ~own, left & ~own
     assert extra_right.sum() > 500
-    assert (extra_right & ~valid).sum() >= 0.9 * extra_right.sum()  # measured 98 %
-    assert (extra_left & ~valid).sum() <= 0.6 * extra_left.sum()  # measured 36 %
+    right = (extra_right & ~valid).sum() / extra_right.sum()  # measured 0.99 of 2280 pixels
+    left = (extra_left & ~valid).sum() / max(extra_left.sum(), 1)  # measured 0.56 of 3523
+    assert right >= 0.9 and left <= 0.7 and right - left >= 0.3
