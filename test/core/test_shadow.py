@@ -151,3 +151,38 @@ def test_the_model_of_the_second_imager_on_a_real_d435_capture():
     right = (extra_right & ~valid).sum() / extra_right.sum()  # measured 0.99 of 2280 pixels
     left = (extra_left & ~valid).sum() / max(extra_left.sum(), 1)  # measured 0.56 of 3523
     assert right >= 0.9 and left <= 0.7 and right - left >= 0.3
+
+
+def test_random_frames_give_a_subset_of_the_candidates_and_never_raise():
+    """Property test over 60 random frames (fixed seed): odd tables, tall clutter, NaN holes anywhere, tiny and
+    huge images - the shadow is always a subset of the no-return candidates whose rays meet the table, and it is
+    empty without a second viewpoint or without anything seen above the table."""
+    from gpis_grasp_ros.core.table_frame import TableFrame
+
+    rng = np.random.default_rng(12)
+    found = 0
+    for case in range(60):
+        h, w = (int(rng.integers(2, 40)), int(rng.integers(2, 60))) if case % 3 else (120, 160)
+        f = rng.uniform(50, 600, 2)
+        intr = CameraIntrinsics(float(f[0]), float(f[1]), w / 2 - 0.5, h / 2 - 0.5, w, h)
+        tilt = np.radians(rng.uniform(0, 70))
+        table = TableFrame.from_plane(0.0, np.sin(tilt), -np.cos(tilt), float(rng.uniform(0.3, 2.0)))
+        hit_pts, hit = table.ray_intersection(intr.rays())
+        lift = np.where(rng.random((h, w)) < 0.3, rng.uniform(0.0, 1.5, (h, w)), 0.0)  # up to 1.5 m above
+        points = np.where(hit[..., None], hit_pts + lift[..., None] * table.n, np.nan)
+        height = np.where(hit, lift, np.nan)
+        missing = rng.random((h, w)) < rng.uniform(0, 0.6)
+        points[missing], height[missing] = np.nan, np.nan
+        solid = ~missing & hit & (lift > 0.01)
+        sensor = dataclasses.replace(SensorModel(), occluder_x_m=float(rng.uniform(-0.2, 0.2)))
+        footprint = float(rng.uniform(1e-4, 0.01))
+        out = occlusion_shadow_pixels(points, height, solid, missing, table, intr, sensor, footprint,
+                                      min_hull_span_px=None if case % 2 else 3.0)
+        assert out.shape == (h, w) and out.dtype == bool
+        assert not (out & ~(missing & hit)).any()
+        found += int(out.sum())
+        none = occlusion_shadow_pixels(points, height, solid, missing, table, intr,
+                                       dataclasses.replace(sensor, occluder_x_m=0.0), 0.001)
+        bare = occlusion_shadow_pixels(points, height, np.zeros_like(solid), missing, table, intr, sensor, 0.001)
+        assert not none.any() and not bare.any()
+    assert found > 100  # not vacuous: the random clutter does cast shadows
