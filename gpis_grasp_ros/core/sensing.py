@@ -191,7 +191,7 @@ top-down camera the camera's x, y at the table depth).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -715,6 +715,23 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     return (out, tested) if return_tested else out
 
 
+def _column_samples(foot: np.ndarray, h: np.ndarray, n: np.ndarray, normal: np.ndarray,
+                    include_point: bool) -> Iterator[np.ndarray]:
+    """Points on the solid columns from ``foot`` (k, 3) up ``h`` (k,) m along ``normal``: ``n[i]`` evenly spaced
+    samples of column i (from the foot up to the point itself with ``include_point``, else up to but not
+    including it), yielded in chunks of about ``SEE_THROUGH_CHUNK`` samples (bounded memory in a cluttered
+    frame) as (m, 3) arrays."""
+    ends = np.cumsum(n)
+    bounds = np.searchsorted(ends, np.arange(SEE_THROUGH_CHUNK, int(ends[-1]), SEE_THROUGH_CHUNK), side='right')
+    for a, b in zip(np.r_[0, bounds], np.r_[bounds, foot.shape[0]], strict=True):
+        if b <= a:
+            continue
+        column = np.repeat(np.arange(a, b), n[a:b])
+        k = np.arange(column.size) + (ends[a] - n[a]) - (ends[column] - n[column])  # index within its column
+        frac = k / (n[column] - 1) if include_point else k / n[column]
+        yield foot[column] + (frac * h[column])[:, None] * normal
+
+
 def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray, depth: np.ndarray,
                        table: TableFrame, intrinsics: CameraIntrinsics, sensor: SensorModel,
                        slack_m: float = 0.005, max_samples: int = 64) -> tuple[np.ndarray, np.ndarray]:
@@ -748,16 +765,7 @@ def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray
     foot = top - h[:, None] * table.n
     span = np.linalg.norm(intrinsics.project(top) - intrinsics.project(foot), axis=-1)
     n = np.clip(np.ceil(np.nan_to_num(span)).astype(np.int64) + 1, 1, max_samples)  # samples per column
-    ends = np.cumsum(n)
-    # columns in chunks of about SEE_THROUGH_CHUNK samples: bounded memory in a cluttered frame
-    bounds = np.searchsorted(ends, np.arange(SEE_THROUGH_CHUNK, int(ends[-1]), SEE_THROUGH_CHUNK), side='right')
-    for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, top.shape[0]], strict=True):
-        if hi <= lo:
-            continue
-        column = np.repeat(np.arange(lo, hi), n[lo:hi])
-        start = ends[column] - n[column]
-        s = (np.arange(column.size) + (ends[lo] - n[lo]) - start) / n[column]  # [0, 1): the point itself excluded
-        samples = foot[column] + (s * h[column])[:, None] * table.n
+    for samples in _column_samples(foot, h, n, table.n, include_point=False):  # the point itself excluded
         u, v, inside = intrinsics.pixel_index(samples)
         np.minimum.at(entry, (v[inside], u[inside]), samples[inside, 2])
     # behind the columns of the whole 3 x 3 neighbourhood: a column rounded onto the pixel beside the
@@ -794,15 +802,7 @@ def column_zbuffer(top: np.ndarray, h: np.ndarray, table: TableFrame, intrinsics
         return zbuf
     lo = np.array([u0, v0])
     n = np.clip(np.ceil(np.linalg.norm(uv_top - uv_foot, axis=-1)).astype(np.int64) + 1, 2, max_samples)
-    ends = np.cumsum(n)
-    bounds = np.searchsorted(ends, np.arange(SEE_THROUGH_CHUNK, int(ends[-1]), SEE_THROUGH_CHUNK), side='right')
-    for a, b in zip(np.r_[0, bounds], np.r_[bounds, top.shape[0]], strict=True):
-        if b <= a:
-            continue
-        column = np.repeat(np.arange(a, b), n[a:b])
-        start = ends[column] - n[column]
-        frac = (np.arange(column.size) + (ends[a] - n[a]) - start) / (n[column] - 1)  # 0 = foot ... 1 = the point
-        samples = foot[column] + (frac * h[column])[:, None] * table.n
+    for samples in _column_samples(foot, h, n, table.n, include_point=True):
         uv = np.round(intrinsics.project(samples)).astype(np.int64) - lo
         keep = (uv[:, 0] >= 0) & (uv[:, 0] < zbuf.shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < zbuf.shape[0])
         np.minimum.at(zbuf, (uv[keep, 1], uv[keep, 0]), samples[keep, 2])

@@ -163,10 +163,11 @@ class ObjectModel:
 
 @functools.lru_cache(maxsize=4)
 def _object_model_cached(entry_json: str, grid_size: int, frames: int) -> ObjectModel:
-    from gpis_grasp_ros.core.contacts import bilinear
     from gpis_grasp_ros.core.sensing import SensingParams
     from gpis_grasp_ros.data.bags import posterior_from_scene
     from gpis_grasp_ros.sim.dataset import render_entry
+    from gpis_grasp_ros.tools.benchmark.calibration import gp_z_scores
+    from gpis_grasp_ros.tools.benchmark.evaluation import TrueShape
 
     entry = json.loads(entry_json)
     t0 = time.perf_counter()
@@ -176,19 +177,11 @@ def _object_model_cached(entry_json: str, grid_size: int, frames: int) -> Object
     except ValueError as err:  # segmentation / GPIS rejected the scene: a result, not a crash
         return ObjectModel(None, scene.true_sdf, scene.true_geometry, scene.true_center_of_mass, 'no_gpis',
                            f'{type(err).__name__}: {err}', time.perf_counter() - t0, float('nan'))
-    iou = float('nan')
-    if scene.true_sdf is not None:
-        centers = to_truth_grid(posterior.geometry.cell_centers(), posterior.geometry, scene.true_geometry)
-        true_inside = bilinear(scene.true_sdf, scene.true_geometry, centers) < 0
-        mean_inside = posterior.mean < 0
-        union = np.count_nonzero(true_inside | mean_inside)
-        iou = float(np.count_nonzero(true_inside & mean_inside) / union) if union else float('nan')
-    surface = {}
-    if scene.true_sdf is not None:
-        from gpis_grasp_ros.tools.benchmark.calibration import gp_z_scores
-        from gpis_grasp_ros.tools.benchmark.evaluation import TrueShape
-
-        z = gp_z_scores(posterior, TrueShape(scene.true_sdf, scene.true_geometry, posterior.geometry))
+    iou, surface = float('nan'), {}
+    if scene.true_sdf is not None:  # the mean shape against the truth at the cell centres, and near its surface
+        truth = TrueShape(scene.true_sdf, scene.true_geometry, posterior.geometry)
+        iou = truth.iou_on(posterior.geometry, posterior.mean)
+        z = gp_z_scores(posterior, truth)
         surface = {k: z[k] for k in SURFACE_COLUMNS}
     status = 'ok' if scene.true_sdf is not None else 'no_ground_truth'
     return ObjectModel(posterior, scene.true_sdf, scene.true_geometry, scene.true_center_of_mass, status,
