@@ -107,11 +107,11 @@ def shift_spread(shifts: tuple[tuple[float, float], ...] = tuple((x, y) for x in
 def hole_errors(letters: str = 'BCDEH') -> None:
     """Median / 90th percentile (mm) of the distance between where segmentation puts the no-return pixels of each
     head bag (the orthographic foot of their placed point) and the foot of the surface the simulator's ray hits."""
-    from gpis_grasp_ros.core import sensing
+    from gpis_grasp_ros.core.sensing import occlusion
     from gpis_grasp_ros.sim.objects import head_spec
     from gpis_grasp_ros.sim.scene import L_SPECULAR, Scene
 
-    place = sensing._missing_height
+    place = occlusion._missing_height
     for path in sorted((BAG_DIR / 'head').glob('*.mcap')):
         if path.name[0] not in letters:
             continue
@@ -121,11 +121,11 @@ def hole_errors(letters: str = 'BCDEH') -> None:
             captured['args'], captured['h'] = args, place(*args, **kwargs)
             return captured['h']
 
-        sensing._missing_height = spy
+        occlusion._missing_height = spy
         try:
             segment(load_bag(path))
         finally:
-            sensing._missing_height = place
+            occlusion._missing_height = place
         _, above, missing, rays, table = captured['args'][:5]
         h = captured['h'][0] if isinstance(captured['h'], tuple) else captured['h']  # (heights, tested) or heights
         sim = Scene(head_spec(path.name[0]))

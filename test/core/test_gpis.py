@@ -584,12 +584,12 @@ def _rendered_scene(seed: int, trans_width: float = 0.02, n_frames: int = 6, siz
     return rgb, depth, intr, true_sdf, (0.01, 0.01 + trans_width)
 
 
-def _posterior_and_truth(seed: int, exclude_uncertain: bool = True, **kw):
+def _posterior_and_truth(seed: int, **kw):
     from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
     from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 
     rgb, depth, intr, true_sdf, trans_x = _rendered_scene(seed, **kw)
-    result = segment_frames(rgb, depth, intr, SensingParams(exclude_uncertain=exclude_uncertain))
+    result = segment_frames(rgb, depth, intr, SensingParams())
     post = posterior_from_grids(*publishable_grids(result))
     p = result.geometry.to_sensor(result.geometry.cell_centers(), 0.0)  # cell centres in the camera frame
     return post, result, true_sdf(p[..., 0], p[..., 1]), p, trans_x
@@ -602,8 +602,7 @@ def test_transparent_part_is_uncertain_and_covered(seed):
     Its cells are unknown (not trained, object in the SDF, section III-B), so the posterior at the
     part's true surface is uncertain (sigma >= 0.2 x the prior sigma there) and its 95 % interval
     covers the true SDF at >= 90 % of the near-surface cells of the part; the part stays in the mean
-    shape. The old noise map (the part's cells trained as observed table, ``exclude_uncertain=False``)
-    covers the truth at only ~1/4 of those cells.
+    shape.
     """
     post, result, truth, p, (x0, x1) = _posterior_and_truth(seed)
     res = post.geometry.resolution
@@ -616,11 +615,6 @@ def test_transparent_part_is_uncertain_and_covered(seed):
     assert np.median(sd[part]) >= 0.2 * math.sqrt(post.params.signal_variance)
     inside = (p[..., 0] > x0 + res) & (p[..., 0] < x1 - res) & (np.abs(p[..., 1]) < 0.015)
     assert np.mean(post.mean[inside] < 0) > 0.8  # the part does not vanish from the mean shape
-
-    if seed == 0:
-        old, _, _, _, _ = _posterior_and_truth(seed, exclude_uncertain=False)
-        z_old = (truth - old.mean) / np.sqrt(old.variance)
-        assert np.mean(np.abs(z_old[part]) < 1.96) < 0.5
 
 
 def test_opaque_box_keeps_its_calibrated_mean_shape():
@@ -653,7 +647,7 @@ def test_unknown_cells_are_object_and_untrained_on_both_paths():
 
 
 def test_extended_regions_drop_thin_rings_and_keep_blocks():
-    from gpis_grasp_ros.core.sensing import _extended_regions
+    from gpis_grasp_ros.core.sensing.noise_map import _extended_regions
 
     mask = np.zeros((20, 20), dtype=bool)
     mask[2:9, 2] = mask[2:9, 8] = mask[2, 2:9] = mask[8, 2:9] = True  # one-cell ring: edge noise
@@ -669,7 +663,7 @@ def test_extended_regions_drop_thin_rings_and_keep_blocks():
 
 
 def test_foreign_missing_fraction_counts_pixels_per_cell():
-    from gpis_grasp_ros.core.sensing import _foreign_missing_fraction
+    from gpis_grasp_ros.core.sensing.noise_map import _foreign_missing_fraction
 
     rng = np.random.default_rng(0)
     m, n = 4, 4000

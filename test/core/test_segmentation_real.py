@@ -16,9 +16,6 @@ from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.sensing import (
     SensingParams,
-    _bounded_extension,
-    _colour_model,
-    _Raster,
     chromatic_extension,
     chromaticity_distance,
     seen_through,
@@ -26,6 +23,9 @@ from gpis_grasp_ros.core.sensing import (
     split_flat_support,
     split_touching,
 )
+from gpis_grasp_ros.core.sensing.clear_body import _bounded_extension
+from gpis_grasp_ros.core.sensing.evidence import _colour_model
+from gpis_grasp_ros.core.sensing.objects import _Raster
 
 RES = 0.004  # m per raster cell, the scale of the real captures' rasters (2 pixel footprints)
 
@@ -147,32 +147,29 @@ def test_a_ring_of_evidence_gets_its_interior_filled():
     raster, foot = _raster_pixels(ring)
     px_labels = ring.astype(np.int64)
     table_level = ~ring
-    through = seen_through(raster, 1, foot, px_labels, np.zeros(shape, bool), table_level, 0.006)
+    through = seen_through(raster, 1, foot, px_labels, table_level, 0.006)
     interior = inner & ~ring
     assert through[interior].mean() > 0.97
     assert not through[~outer].any() and not through[ring].any()
-    # a pixel of another object inside the ring is not taken; colour-only core pixels only when asked
+    # a pixel of another object inside the ring is not taken
     px_labels[30, 30] = 2
-    assert not seen_through(raster, 1, foot, px_labels, np.zeros(shape, bool), table_level, 0.006)[30, 30]
+    assert not seen_through(raster, 1, foot, px_labels, table_level, 0.006)[30, 30]
 
 
-def test_open_outline_and_colour_core():
+def test_open_outline_and_solid_component():
     """A C-shape whose opening (10 cells) is far wider than the closing disc is not closed: nothing inside is
-    returned. Colour-only pixels in the core of a solid component are returned only when given as colour_only."""
+    returned. A solid component has no interior: nothing is returned."""
     shape = (60, 60)
     outer, inner = _disc(shape, (30.0, 30.0), 20.0), _disc(shape, (30.0, 30.0), 17.0)
     c_shape = outer & ~inner
     c_shape[25:36, 40:] = False
     raster, foot = _raster_pixels(c_shape)
-    through = seen_through(raster, 1, foot, c_shape.astype(np.int64), np.zeros(shape, bool), ~c_shape, 0.006)
+    through = seen_through(raster, 1, foot, c_shape.astype(np.int64), ~c_shape, 0.006)
     assert through.sum() < 0.05 * (inner.sum())
     solid = outer
     raster, foot = _raster_pixels(solid)
-    colour = solid.copy()
-    none = seen_through(raster, 1, foot, solid.astype(np.int64), np.zeros(shape, bool), solid, 0.006)
-    core = seen_through(raster, 1, foot, solid.astype(np.int64), colour, solid, 0.006)
+    none = seen_through(raster, 1, foot, solid.astype(np.int64), solid, 0.006)
     assert not none.any()
-    assert core[_disc(shape, (30.0, 30.0), 17.0)].all() and not core[outer & ~_disc(shape, (30.0, 30.0), 19.5)].any()
 
 
 def test_colour_model_rejects_a_shadow_and_flags_a_clear_object():
@@ -193,13 +190,13 @@ def test_colour_model_rejects_a_shadow_and_flags_a_clear_object():
     assert np.mean(p_clear > 0.5) > 0.95
 
 
-def test_shadow_rejected_with_smoothing_and_hole_margin_on():
-    """The options of the colour model (smoothing, hole-margin training) keep a strong shadow out of the
-    colour evidence and out of the uncertain cells."""
+def test_shadow_rejected_by_the_colour_model():
+    """The shadow-line colour model keeps a strong shadow out of the colour evidence and out of the uncertain
+    cells."""
     box = Box(0.0, 0.0, 0.025, 0.02, 0.04)
     scene = TiltedScene(40.0, boxes=[box], shadows=[(0.025, -0.02, 0.055, 0.02, 0.35)])
     rgb, depth, _ = scene.frames(3, seed=2)
-    params = SensingParams(color_smooth_px=1.5, color_hole_margin_px=3)
+    params = SensingParams()
     result = segment_frames(rgb, depth, scene.intrinsics, params)
     pts = scene.intrinsics.rays() * np.nanmean(depth, axis=0)[..., None]
     xy = scene.table_xy(pts)

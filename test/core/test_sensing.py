@@ -135,7 +135,7 @@ def test_grid_occupancy_missing_and_noise_regions(scene):
                           fr['spec'][(fr['spec'] > 0.6) | (fr['spec'] < 0.4)] > 0.6)
     assert not result.train_mask[result.missing].any()
     # seen in depth (box, table): trained; the transparent part (an extended region seen in colour only) is
-    # unknown, not trained (the GPIS prior governs it; exclude_uncertain)
+    # unknown, not trained (the GPIS prior governs it)
     assert result.train_mask[box_only | table].all() and not result.train_mask[trans].any()
     # occupancy: box and specular part (missing = object) occupied, table free
     assert np.all(result.occupancy[box_only] > 0.95) and np.all(result.occupancy[spec] == 1.0)

@@ -80,10 +80,10 @@ def test_perception_model_switches_are_segmentation_parameters():
     node = SegmentationNode(context=context)
     try:
         d = sensing.SensingParams()
-        assert (node.params.chroma_z_min, node.params.exclude_uncertain) == (d.chroma_z_min, d.exclude_uncertain)
-        ok = node.set_parameters([Parameter('chroma_z_min', value=0.0), Parameter('exclude_uncertain', value=False)])[0]
+        assert node.params.chroma_z_min == d.chroma_z_min
+        ok = node.set_parameters([Parameter('chroma_z_min', value=0.0)])[0]
         assert ok.successful, ok.reason
-        assert (node.params.chroma_z_min, node.params.exclude_uncertain) == (0.0, False)
+        assert node.params.chroma_z_min == 0.0
         assert not node.set_parameters([Parameter('chroma_z_min', value=-1.0)])[0].successful
         assert node.params.chroma_z_min == 0.0
         assert (node.params.clear_body_prism, node.params.train_clear_body) == (True, True) == (

@@ -176,11 +176,6 @@ class SegmentationNode(GuardedNode):
                                  'clear targets: grow the target over table-level pixels this many robust sigmas '
                                  'off the table\'s chromaticity, as colour-only evidence (0 = off)',
                                  low=0.0, high=100.0),
-            exclude_uncertain=declare(self, 'exclude_uncertain', bool(defaults.exclude_uncertain),
-                                      'unknown cells (no depth return, depth and colour disagreeing over a region, '
-                                      'foreign no-return pixels) are not GPIS training points and count as object '
-                                      '(the prior governs them); false: the previous model, only missing cells '
-                                      'untrained, disagreeing cells trained and free'),
             see_through_test=declare(self, 'see_through_test', bool(defaults.see_through_test),
                                      'a return behind the solid under a point seen above the table (a clear part '
                                      'seen through) is moved to where its ray enters that solid; false: kept '
@@ -261,7 +256,7 @@ class SegmentationNode(GuardedNode):
                          target_point=(tuple(float(x) for x in v['target_point'])
                                        if target in ('pixel', 'table') else None),
                          max_opening_m=float(v['max_opening']), max_tilt_deg=float(v['max_tilt_deg']),
-                         chroma_z_min=float(v['chroma_z_min']), exclude_uncertain=bool(v['exclude_uncertain']),
+                         chroma_z_min=float(v['chroma_z_min']),
                          clear_body_prism=bool(v['clear_body_prism']), train_clear_body=bool(v['train_clear_body']),
                          clear_body_height_m=float(v['clear_body_height']),
                          see_through_test=bool(v['see_through_test']), shadow_test=bool(v['shadow_test']))

@@ -1,0 +1,152 @@
+"""Soft per-pixel evidence of "not the table": depth (height above the plane) and a shadow-proof colour model."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from scipy.special import ndtr
+
+from gpis_grasp_ros.core.sensing.camera import AveragedFrames
+from gpis_grasp_ros.core.sensing.params import CHROMA_DARK, CHROMA_MIN_SIGMA, CHROMA_SMOOTH_PX, SensingParams
+from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
+
+
+def shadow_line_distance(rgb: np.ndarray, table_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (0-255 units) of colours ``(..., 3)`` from the table's shadow line {alpha t, 0 <= alpha <= 1},
+    and the brightness ratio alpha* = x.t / |t|^2 of each colour.
+
+    A shadow scales the table colour t by alpha < 1 (same chromaticity) and is at distance ~0; a
+    brighter colour is measured from t itself; a tint or another hue is off the line.
+    """
+    t = np.asarray(table_rgb, dtype=np.float64)
+    ratio = (rgb @ t) / max(float(t @ t), 1e-9)
+    alpha = np.clip(ratio, 0.0, 1.0)
+    return np.linalg.norm(rgb - alpha[..., None] * t, axis=-1), ratio
+
+
+@dataclass(frozen=True)
+class ColourModel:
+    """Table colour model learnt from the plane's inliers (robust statistics: median and 1.4826 MAD)."""
+
+    table_rgb: np.ndarray  # (3,) median colour t of the training pixels (0-255)
+    threshold: float  # shadow-line distance above which a colour is not the table's
+    sigma: float  # width of the soft ramp of the test
+    dark_ratio: float  # brightness ratio below which a colour on the shadow line is "darker than the table"
+
+    def evidence(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """p_c (probability of "not the table") and the brightness ratio of colours ``rgb``."""
+        dist, ratio = shadow_line_distance(rgb, self.table_rgb)
+        return ndtr((dist - self.threshold) / self.sigma), ratio
+
+
+def _colour_model(rgb: np.ndarray, train: np.ndarray, params: SensingParams) -> ColourModel:
+    """Table colour model from the training pixels ``train`` of the colour image.
+
+    t = median colour; threshold = max(``color_threshold_min``, median + ``color_mad_factor`` MAD) of
+    the training pixels' shadow-line distances, ramp max(2, MAD); colours darker than the table's
+    own texture (ratio below median - max(0.1, ``color_mad_factor`` MAD)) are "darker than the table".
+    Robust statistics, because the plane's inliers include the table seen *through* clear objects."""
+    samples = rgb[train]
+    if samples.shape[0] > 50000:
+        samples = samples[np.random.default_rng(0).choice(samples.shape[0], 50000, replace=False)]
+    if params.table_color is not None:
+        table_rgb = np.asarray(params.table_color, dtype=np.float64).reshape(3)
+    else:
+        table_rgb = np.median(samples, axis=0)
+    dist, ratio = shadow_line_distance(samples, table_rgb)
+    mad = 1.4826 * float(np.median(np.abs(dist - np.median(dist))))
+    c_thr = (float(params.color_threshold) if params.color_threshold > 0
+             else max(params.color_threshold_min, float(np.median(dist)) + params.color_mad_factor * mad))
+    c_sigma = float(params.color_sigma) if params.color_sigma > 0 else max(2.0, mad)
+    ratio_mad = 1.4826 * float(np.median(np.abs(ratio - np.median(ratio))))
+    dark_ratio = float(np.median(ratio)) - max(0.1, params.color_mad_factor * ratio_mad)
+    return ColourModel(table_rgb, c_thr, c_sigma, dark_ratio)
+
+
+def _colour_evidence(rgb_mean: np.ndarray, inlier: np.ndarray,
+                     params: SensingParams) -> tuple[ColourModel, np.ndarray, np.ndarray]:
+    """Table colour model trained on the plane's inliers, per-pixel colour evidence p_c and brightness ratio."""
+    img = rgb_mean.astype(np.float32).astype(np.float64)
+    model = _colour_model(img, inlier, params)
+    p_c, ratio = model.evidence(img)
+    return model, p_c, ratio
+
+
+def _morph_clean(prob: np.ndarray, size: int) -> np.ndarray:
+    """Grey-level opening then closing of a probability map (removes specks, fills pinholes)."""
+    if size <= 1:
+        return prob
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    img = prob.astype(np.float32)
+    img = cv2.morphologyEx(img, cv2.MORPH_OPEN, kernel, borderType=cv2.BORDER_REPLICATE)
+    img = cv2.morphologyEx(img, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_REPLICATE)
+    return img.astype(np.float64)
+
+
+def chromaticity_distance(rgb: np.ndarray, train: np.ndarray, smooth_px: float = CHROMA_SMOOTH_PX,
+                          dark: float = CHROMA_DARK) -> tuple[np.ndarray, float, float]:
+    """Distance of each pixel's chromaticity from the table's, in robust sigmas of the table's own spread.
+
+    Chromaticity c = (r, g, b) / (r + g + b) of the colour image smoothed with a Gaussian of ``smooth_px``
+    pixels (demosaicing / JPEG noise): it ignores brightness, so a shadow or a highlight *of the table's
+    colour* is at distance ~0, while the table seen *through* clear plastic - desaturated and tinted by the
+    walls' reflections - is not. The table's chromaticity is the median over the training pixels ``train``
+    (plane inliers); D = |c - c_table|, standardised as z = (D - median) / (1.4826 MAD) over the training
+    pixels (at least ``CHROMA_MIN_SIGMA``: the smoothing halo of a coloured object on a noiseless table is
+    not a body), so the test adapts to the table's texture (a mottled cloth, wood grain) and to the sensor; the
+    spread grows as 1 / sqrt(brightness) for pixels darker than the table (the chromaticity noise of a shadow).
+    Pixels darker than ``dark`` (sum of 0-255 RGB / 3) have no reliable chromaticity: z = 0.
+
+    Returns z (H x W), and the median and MAD scale of D over the training pixels."""
+    img = np.asarray(rgb, dtype=np.float32)
+    if smooth_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), smooth_px, borderType=cv2.BORDER_REPLICATE)
+    total = img.sum(axis=-1)
+    chroma = img / np.maximum(total, 1e-3)[..., None]
+    samples = chroma[train]
+    if samples.shape[0] < 20:
+        return np.zeros(total.shape), 0.0, 1.0
+    dist = np.linalg.norm(chroma - np.median(samples, axis=0), axis=-1)
+    med = float(np.median(dist[train]))
+    scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(np.median(np.abs(dist[train] - med))))
+    # the chromaticity of a darker pixel is noisier (shot noise over less light): its spread is the table's
+    # times sqrt(table brightness / pixel brightness), so a shadow is not flagged by its noise
+    spread = scale * np.sqrt(np.maximum(1.0, float(np.median(total[train])) / np.maximum(total, 1e-3)))
+    z = np.where(total / 3.0 >= dark, (dist - med) / spread, 0.0)
+    return z.astype(np.float64), med, scale
+
+
+class Evidence(NamedTuple):
+    """Per-pixel soft evidence, cleaned."""
+
+    p_d: np.ndarray  # (H, W) probability of "above the table" from depth
+    p_c: np.ndarray  # (H, W) probability of "not the table's colour"
+    colour: ColourModel
+
+
+def soft_evidence(frames: AveragedFrames, fit: TableFit, meas: Measurement, params: SensingParams) -> Evidence:
+    """p_d = Phi((h - h_thr) / s_h) and the colour test p_c, each cleaned by a grey-level opening then closing;
+    a colour darker than the table on its shadow line defers to depth."""
+    p_d = np.where(frames.valid, ndtr((np.nan_to_num(meas.height) - fit.h_thr) / meas.s_h), 0.0)
+    colour, p_c, c_ratio = _colour_evidence(frames.rgb_mean, fit.inlier, params)
+    p_d = _morph_clean(p_d, params.morph_kernel_px)
+    p_c = _morph_clean(p_c, params.morph_kernel_px)
+    # darker than the table on its shadow line: shadow or a dark object of the table's hue - colour
+    # cannot tell, so it defers to depth (no evidence either way, no disagreement)
+    p_c = np.where((c_ratio < colour.dark_ratio) & (p_c < 0.5), p_d, p_c)
+    return Evidence(p_d, p_c, colour)
+
+
+def combine(ev: Evidence, missing_px: np.ndarray, params: SensingParams) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel occupancy o, the inverse-variance combination of the two masks (missing = object), and the
+    disagreement rho = |p_d - p_c| (0 where missing)."""
+    p_d, p_c = ev.p_d, ev.p_c
+    v_d = p_d * (1.0 - p_d) + params.depth_floor_variance
+    v_c = p_c * (1.0 - p_c) + params.color_floor_variance
+    occ = (p_d / v_d + p_c / v_c) / (1.0 / v_d + 1.0 / v_c)
+    rho = np.where(missing_px, 0.0, np.abs(p_d - p_c))
+    occ = np.where(missing_px, 1.0, occ)
+    return occ, rho

@@ -1,0 +1,112 @@
+"""The SDF noise map: per-cell variance of the signed distance the GP observes, and the cells it is not trained on
+(unknown: missing, extended regions where the masks disagree, foreign no-return pixels)."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.sdf import signed_distance
+from gpis_grasp_ros.core.sensing.params import SensingParams
+from gpis_grasp_ros.core.sensing.rasterise import Cells
+
+
+def _foreign_missing_fraction(row: np.ndarray, col: np.ndarray, in_grid: np.ndarray, informative: np.ndarray,
+                              foreign: np.ndarray, m: int) -> np.ndarray:
+    """Per cell: share of its pixels that are no-return pixels not given to the target (``foreign``).
+
+    Such pixels (a specular wing the segmentation split from the seen body, D of the shipped bags) are
+    otherwise dropped, and the cell is then filled from its neighbours as observed table - the GPIS
+    would be confidently wrong exactly where nothing was measured. Unweighted pixel counts of the
+    cell's informative pixels plus the foreign ones; 0 where no pixel falls in the cell.
+    """
+    idx = np.where(in_grid, np.nan_to_num(row) * m + np.nan_to_num(col), -1).astype(np.int64)
+    n_foreign = np.bincount(idx[in_grid & foreign], minlength=m * m)
+    n_seen = np.bincount(idx[informative], minlength=m * m)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        frac = np.where(n_foreign > 0, n_foreign / np.maximum(n_foreign + n_seen, 1), 0.0)
+    return frac.reshape(m, m)
+
+
+def _extended_regions(mask: np.ndarray) -> np.ndarray:
+    """The 8-connected components of ``mask`` that hold a cell whose four neighbours are all in ``mask``.
+
+    Drops thin bands (one or two cells wide): where the colour mask bleeds a pixel or two past a seen
+    object's edge the masks disagree along a ring, which is edge noise, not an unseen part.
+    """
+    if not mask.any():
+        return np.zeros_like(mask)
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    core = cv2.erode(mask.astype(np.uint8), cross, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    keep = np.zeros(count, dtype=bool)
+    keep[np.unique(labels[core])] = True
+    keep[0] = False
+    return keep[labels]
+
+
+def _propagation_variance(occ_bin: np.ndarray, uncertain: np.ndarray, train: np.ndarray, geometry: GridGeometry,
+                          params: SensingParams) -> np.ndarray:
+    """SDF variance (m^2) induced by uncertain cells on every cell's distance (docs/segmentation-stages.md)."""
+    out = np.zeros(geometry.shape)
+    if not uncertain.any():
+        return out
+    res = geometry.resolution
+    n_local = math.pi * (params.error_correlation_length_m / res) ** 2
+    count, labels = cv2.connectedComponents(uncertain.astype(np.uint8), connectivity=8)
+    for c in range(1, count):
+        comp = labels == c
+        rest = occ_bin & ~comp
+        if not rest.any():  # the component is the only object evidence: "free" would mean no object at all
+            continue
+        delta = signed_distance(occ_bin | comp, res) - signed_distance(rest, res)
+        reach = cv2.distanceTransform((~comp).astype(np.uint8), cv2.DIST_L2, 5) * res
+        delta = np.where(reach <= params.propagation_radius_m, delta, 0.0)
+        affected = int(np.count_nonzero((np.abs(delta) > 1e-12) & train))
+        n_eff = max(1.0, min(float(affected), n_local))
+        out += params.alternative_weight * n_eff * delta ** 2
+    return out
+
+
+class NoiseMap(NamedTuple):
+    """What the GPIS is trained on."""
+
+    noise: np.ndarray  # (M, M) m^2, SDF observation-noise variance
+    train_mask: np.ndarray  # (M, M) bool, training cells (not unknown)
+    uncertain: np.ndarray  # (M, M) bool, missing, disagreeing or mostly foreign no-return cells
+
+
+def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_hull: np.ndarray,
+              params: SensingParams) -> NoiseMap:
+    """SDF noise = depth + discretisation + disagreement + propagation. Unknown cells are not trained and count
+    as object in the SDF, so the prior governs them (section III-B); a clear body's prism cells and the table
+    seen through it stay trained with the disagreement variance."""
+    geometry, missing, disagreement, body, behind = (cells.geometry, cells.missing, cells.disagreement, cells.body,
+                                                     cells.behind)
+    res = geometry.resolution
+    disagree = disagreement > params.uncertainty_threshold
+    uncertain = missing | disagree
+    unknown = missing.copy()
+    foreign = _foreign_missing_fraction(cells.row, cells.col, cells.in_grid, cells.informative,
+                                        missing_px & ~target_px & ~off_hull, params.grid_size
+                                        ) > params.missing_cell_fraction
+    uncertain |= foreign
+    trained_clear = behind | (body & params.train_clear_body)  # a clear body's prism, trained
+    unknown |= foreign | (_extended_regions(disagree) & ~trained_clear)
+    noise = (cells.depth_var + params.discretisation_weight * res ** 2 / 12.0
+             + params.disagreement_variance_m2 * disagreement
+             + params.disagreement_variance_m2 * np.where(missing, 0.0, cells.miss_c))
+    occ_bin = cells.occupancy >= 0.5
+    if not occ_bin.any():
+        raise ValueError('no object found: the target evidence is too weak for any grid cell to be occupied '
+                         '(lower grid_size or the thresholds)')
+    noise = np.where(cells.observed, noise, params.unobserved_variance_m2)
+    train_mask = ~unknown
+    sdf_object = occ_bin | ~train_mask  # what the GPIS's SDF treats as object (pipeline.publishable_grids)
+    noise = noise + _propagation_variance(sdf_object, uncertain & ~(body | behind), train_mask, geometry, params)
+    noise = np.where(train_mask, noise, np.maximum(noise, params.disagreement_variance_m2))  # unused by the GP
+    return NoiseMap(noise, train_mask, uncertain)

@@ -1,0 +1,409 @@
+"""Objects on the table: evidence components in the table plane, split where objects touch, joined across small
+holes; the target picked among them and refused when it is cut by the border or too wide for the gripper."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
+from gpis_grasp_ros.core.sensing.evidence import Evidence
+from gpis_grasp_ros.core.sensing.morphology import _filled, _flood, _nearest_label, _reconstruct
+from gpis_grasp_ros.core.sensing.params import (
+    FLAT_JUMP_M,
+    FLAT_MIN_AREA_M2,
+    FLAT_STEP_M,
+    MISSING_ATTACH_M,
+    MISSING_BRIDGE_M,
+    OBJECT_HEIGHT_PERCENTILE,
+    SPLIT_NECK_M,
+    SensingParams,
+)
+from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
+
+
+@dataclass
+class _Raster:
+    """Table-plane raster of the evidence: cell (ix, iy) covers origin + [ix, ix+1) x [iy, iy+1) x res."""
+
+    origin: np.ndarray  # (2,) m
+    res: float
+    labels: np.ndarray  # (ny, nx) int32 component labels after closing (0 = none)
+
+    def cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        idx = np.floor((np.asarray(xy) - self.origin) / self.res)
+        ny, nx = self.labels.shape
+        ok = np.isfinite(idx).all(axis=-1) & (idx[..., 0] >= 0) & (idx[..., 0] < nx) & (idx[..., 1] >= 0) \
+            & (idx[..., 1] < ny)
+        idx = np.where(ok[..., None], idx, 0).astype(np.int64)
+        return idx[..., 0], idx[..., 1], ok
+
+
+def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, np.ndarray]:
+    """Split touching objects in a labelled raster at the necks of their union (distance-transform watershed).
+
+    Two objects in contact form one evidence component shaped like two blobs joined by a neck (their
+    contact). The components' holes are filled first (a clear object is seen as an outline around a
+    see-through interior). The distance transform (DT, cells to the nearest non-evidence cell) of the
+    filled components has a maximum in each blob; the markers are the maxima whose *dynamic* (peak DT
+    minus the DT of the saddle joining them to a higher peak) is at least ``neck_cells``: the h-maxima
+    of the DT, i.e. both blobs are wider than the neck by at least 2 ``neck_cells`` in diameter. A
+    component with two or more markers is divided by a watershed of -DT from them (cells go to the
+    blob they are deepest in); an elongated object with a narrow part (a bottle's neck, a marker's
+    tip) has no maximum in the narrow part and stays whole.
+
+    Returns the new labels (split parts get fresh labels after the existing ones) and, per new label,
+    the label it came from (so that the parts are not joined again by later merging steps)."""
+    n = int(labels.max()) + 1
+    origin = np.arange(n)
+    if n <= 1 or neck_cells <= 0:
+        return labels, origin
+    filled = _filled(labels > 0).astype(np.uint8)
+    n_f, lab_f = cv2.connectedComponents(filled, connectivity=8)
+    dist = cv2.distanceTransform(np.pad(filled, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    hmax = _reconstruct(np.maximum(dist - neck_cells, 0.0), dist)
+    eps = 1e-3
+    maxima = (hmax - _reconstruct(np.maximum(hmax - eps, 0.0), hmax) > eps / 2) & (filled > 0)
+    n_mark, markers = cv2.connectedComponents(maxima.astype(np.uint8), connectivity=8)
+    if n_mark <= 2:
+        return labels, origin
+    owner = np.zeros(n_mark, np.int64)
+    owner[markers[maxima]] = lab_f[maxima]
+    per_comp = np.bincount(owner[1:], minlength=n_f)
+    out = labels.astype(np.int32).copy()
+    origin = list(origin)
+    for comp_id in np.nonzero(per_comp >= 2)[0]:
+        if comp_id == 0:
+            continue
+        comp = lab_f == comp_id
+        flooded = _flood(np.where(comp & (markers > 0), markers, 0), dist, comp)
+        cells = comp & (labels > 0)
+        pairs = np.unique(np.stack([labels[cells], flooded[cells]], axis=1), axis=0)
+        seen: set[int] = set()
+        for lab, part in pairs:
+            if int(lab) not in seen:  # the first part of each original label keeps the label
+                seen.add(int(lab))
+                continue
+            out[cells & (labels == lab) & (flooded == part)] = len(origin)
+            origin.append(int(lab))
+    return out, np.asarray(origin)
+
+
+def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
+                       origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Split an object standing on or next to a flat one (a notebook, a plate, a tray) from it.
+
+    ``cell_height`` (m, NaN = no depth-seen evidence in the cell) is the mean height of each raster
+    cell's depth-seen pixels. Within a component, cells whose heights differ by at most
+    ``FLAT_STEP_M`` from a 4-neighbour form *smooth* regions (the flat top of a notebook varies by
+    ~1 mm from cell to cell; the feet of a box's walls and the rims of a clear object jump by
+    centimetres). If the largest smooth region covers at least ``FLAT_MIN_AREA_M2`` and the rest of
+    the component holds at least ``FLAT_MIN_AREA_M2`` / 4 of depth-seen cells more than ``FLAT_JUMP_M``
+    *above* it (something taller standing on or next to it), the component is split:
+    the flat region is one object, the rest is assigned to the flat region or to the other parts by a
+    watershed of -DT (cells go to the part they are deepest in), each other part keeping its own label.
+    A box's flat top is not a support: the feet of its walls lie *below* it. Limitation: one object
+    made of a large flat base and a taller part (a tray with a handle) is split too.
+
+    Returns the labels and the origin of every label (see :func:`split_touching`)."""
+    n = int(labels.max()) + 1
+    origin = np.arange(n) if origin is None else np.asarray(origin)
+    out = labels.astype(np.int32).copy()
+    origin = list(origin)
+    seen = np.isfinite(cell_height) & (labels > 0)
+    min_cells = FLAT_MIN_AREA_M2 / res ** 2
+    h = np.nan_to_num(cell_height)
+    # 4-neighbour smoothness edges between depth-seen cells of the same component
+    ny, nx = labels.shape
+    idx = np.arange(ny * nx).reshape(ny, nx)
+    rows, cols = [], []
+    for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
+        ok = seen[a] & seen[b] & (labels[a] == labels[b]) & (np.abs(h[a] - h[b]) <= FLAT_STEP_M)
+        rows.append(idx[a][ok])
+        cols.append(idx[b][ok])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(r.size), (r, c)), shape=(ny * nx, ny * nx))
+    _, smooth = connected_components(graph, directed=False)
+    smooth = np.where(seen.ravel(), smooth + 1, 0).reshape(ny, nx)
+    sizes = np.bincount(smooth.ravel())
+    sizes[0] = 0
+    big = np.nonzero(sizes >= min_cells)[0]  # smooth regions large enough to be a support, and their labels
+    region_label = np.zeros(sizes.size, np.int64)
+    region_label[smooth[seen]] = labels[seen]
+    if big.size == 0:
+        return out, np.asarray(origin)
+    dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    for lab in np.unique(region_label[big]):
+        comp = labels == lab
+        regions = np.unique(smooth[comp & seen])
+        if regions.size == 0:
+            continue
+        flat = int(regions[np.argmax(sizes[regions])])
+        if sizes[flat] < min_cells:
+            continue
+        flat_cells = smooth == flat
+        h_flat = float(np.median(h[flat_cells]))
+        other = comp & seen & ~flat_cells & (h > h_flat + FLAT_JUMP_M)
+        if other.sum() < min_cells / 4:
+            continue
+        n_o, lab_o = cv2.connectedComponents(other.astype(np.uint8), connectivity=8)
+        markers = np.where(flat_cells, 1, np.where(lab_o > 0, lab_o + 1, 0)).astype(np.int32)
+        flooded = _flood(markers, dist, comp)
+        for part in range(2, n_o + 1):
+            sel = comp & (flooded == part)
+            if sel.any():
+                out[sel] = len(origin)
+                origin.append(int(origin[lab]) if lab < len(origin) else lab)
+    return out, np.asarray(origin)
+
+
+def _merge_across_small_holes(labels: np.ndarray, lab_miss: np.ndarray, n_miss: int, n_pos: int,
+                              touching: np.ndarray, res: float, origin: np.ndarray | None = None) -> np.ndarray:
+    """Objects touching the same small hole region (extent <= ``MISSING_BRIDGE_M``) are one object
+    (e.g. a specular band across a marker); large hole regions (drop-outs along the table) join nothing.
+    Parts of one component split at a neck (same ``origin``, :func:`split_touching`) are not joined again."""
+    parent = np.arange(labels.max() + 1)
+    source = np.arange(parent.size)
+    if origin is not None:
+        source[:min(origin.size, source.size)] = origin[:source.size]
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    grown = cv2.dilate((labels > 0).astype(np.uint8), np.ones((3, 3), np.uint8))
+    for c in np.nonzero(touching)[0]:
+        if c == 0:
+            continue
+        rows, cols = np.nonzero(lab_miss == c)
+        if math.hypot(np.ptp(rows), np.ptp(cols)) * res > MISSING_BRIDGE_M:
+            continue
+        ring = cv2.dilate((lab_miss == c).astype(np.uint8), np.ones((3, 3), np.uint8)) & grown
+        near = np.unique(labels[(ring > 0) & (labels > 0) & (labels <= n_pos)])
+        for other in near[1:]:
+            if source[int(other)] != source[int(near[0])]:
+                parent[find(int(other))] = find(int(near[0]))
+    roots = np.array([find(i) for i in range(parent.size)])
+    return roots[labels].astype(np.int32)
+
+
+def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.ndarray, inlier_xy: np.ndarray,
+                      footprint_m: float, attach_m: float,
+                      height: np.ndarray | None = None) -> tuple[_Raster, np.ndarray]:
+    """Rasterise the evidence pixels' feet over the table's extent and label connected components.
+
+    Components are built from the positive evidence (depth or colour). Holes (missing pixels) are
+    grouped separately: a hole region touching an object joins it only within ``attach_m`` of its
+    positive evidence (a hole is object where it is part of a seen object, e.g. a specular patch, not
+    a path along the table's drop-outs to the next object), entirely if it touches only that object
+    and is at most 2 ``MISSING_BRIDGE_M`` across; a small hole region (``MISSING_BRIDGE_M``) touching
+    several objects joins them; a hole region touching no object is an object of its own (entirely
+    specular / transparent).
+
+    Returns the raster and the per-pixel labels (0 = not evidence or off the table)."""
+    lo, hi = inlier_xy.min(axis=0), inlier_xy.max(axis=0)
+    res = max(5e-4, 2.0 * footprint_m)
+    while np.prod((hi - lo) / res) > 4e6:
+        res *= 1.5
+    nx, ny = (int(v) + 1 for v in np.ceil((hi - lo) / res))
+    raster = _Raster(lo, res, np.zeros((ny, nx), np.int32))
+    # the table's extent: convex hull of its inliers (in raster cell units)
+    hull = cv2.convexHull(((inlier_xy - lo) / res).astype(np.float32))
+    extent = np.zeros((ny, nx), np.uint8)
+    cv2.fillConvexPoly(extent, np.round(hull).astype(np.int32), 1)
+    extent = cv2.erode(extent, np.ones((5, 5), np.uint8))  # the rounded hull's rim (2 cells) is not surely table
+    ix, iy, ok = raster.cell(foot_xy)
+    use = evidence & ok & (extent[iy, ix] > 0)
+    close = np.ones((3, 3), np.uint8)
+
+    def mark(sel: np.ndarray) -> np.ndarray:
+        m = np.zeros((ny, nx), np.uint8)
+        m[iy[sel], ix[sel]] = 1
+        return cv2.morphologyEx(m, cv2.MORPH_CLOSE, close)
+
+    n_pos, lab_pos = cv2.connectedComponents(mark(use & ~missing), connectivity=8)
+    lab_pos, origin = split_touching(lab_pos, SPLIT_NECK_M / res)  # objects in contact
+    if height is not None:  # an object standing on / next to a flat one (notebook, plate)
+        seen = use & ~missing & np.isfinite(height)
+        h_sum = np.bincount(iy[seen] * nx + ix[seen], weights=height[seen], minlength=nx * ny)
+        h_cnt = np.bincount(iy[seen] * nx + ix[seen], minlength=nx * ny)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            cell_h = np.where(h_cnt > 0, h_sum / np.maximum(h_cnt, 1), np.nan).reshape(ny, nx)
+        lab_pos, origin = split_flat_support(lab_pos, cell_h, res, origin)
+    n_pos = int(lab_pos.max()) + 1
+    n_miss, lab_miss = cv2.connectedComponents(mark(use & missing) & (lab_pos == 0).astype(np.uint8), connectivity=8)
+    labels = lab_pos.astype(np.int32)
+    if n_miss > 1:
+        if n_pos > 1:
+            nearest, dist = _nearest_label(lab_pos)
+            touching = np.zeros(n_miss, dtype=bool)
+            touching[np.unique(lab_miss[(dist <= 1.5) & (lab_miss > 0)])] = True
+        else:
+            nearest, dist, touching = np.zeros_like(labels), np.full(labels.shape, np.inf), np.zeros(n_miss, bool)
+        attach = (lab_miss > 0) & touching[lab_miss] & (dist * res <= attach_m)
+        labels[attach] = nearest[attach]
+        for c in np.nonzero(touching)[0]:  # a hole region of one object only (a specular lever): all of it
+            cells = lab_miss == c
+            rows, cols = np.nonzero(cells)
+            owners = np.unique(nearest[cells & (dist <= 1.5)])
+            if owners.size == 1 and math.hypot(np.ptp(rows), np.ptp(cols)) * res <= 2 * MISSING_BRIDGE_M:
+                labels[cells] = owners[0]
+        alone = (lab_miss > 0) & ~touching[lab_miss]
+        labels[alone] = n_pos + lab_miss[alone]
+        labels = _merge_across_small_holes(labels, lab_miss, n_miss, n_pos, touching, res, origin)
+    raster.labels = labels
+    px_labels = np.where(use, raster.labels[iy, ix], 0)
+    return raster, px_labels
+
+
+def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
+                   intr: CameraIntrinsics) -> tuple[int, int]:
+    """Label of the target component and the number of objects seen (``target`` mode)."""
+    n_lab = int(raster.labels.max()) + 1
+    px_count = np.bincount(px_labels.ravel(), minlength=n_lab)
+    area_m2 = np.bincount(raster.labels.ravel(), minlength=n_lab) * raster.res ** 2
+    kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2))[0]
+    kept = kept[kept > 0]
+    if kept.size == 0:
+        raise ValueError(f'no object found on the table: no region of at least {params.min_object_area_px} px and '
+                         f'{params.min_object_area_m2 * 1e4:.1f} cm^2 stands out from the table in depth or colour '
+                         'or lacks depth (empty table?)')
+    if params.target == 'largest':
+        return int(kept[np.argmax(area_m2[kept])]), int(kept.size)
+    if params.target == 'nearest_center':
+        vv, uu = np.nonzero(px_labels > 0)
+        lab = px_labels[vv, uu]
+        n = np.bincount(lab, minlength=n_lab).astype(np.float64)
+        cu = np.bincount(lab, uu, minlength=n_lab) / np.maximum(n, 1)
+        cv = np.bincount(lab, vv, minlength=n_lab) / np.maximum(n, 1)
+        d = np.hypot(cu[kept] - (intr.width - 1) / 2, cv[kept] - (intr.height - 1) / 2)
+        return int(kept[np.argmin(d)]), int(kept.size)
+    if params.target == 'pixel':
+        u, v = (int(round(c)) for c in params.target_point)
+        if not (0 <= u < intr.width and 0 <= v < intr.height):
+            raise ValueError(f'target pixel ({u}, {v}) is outside the {intr.width} x {intr.height} image')
+        point = foot_xy[v, u]
+        if not np.isfinite(point).all():
+            raise ValueError(f'target pixel ({u}, {v}) does not look at the table (its ray misses the plane)')
+        what = f'target pixel ({u}, {v})'
+    else:
+        point = np.asarray(params.target_point, dtype=np.float64)
+        what = f'target point ({point[0]:.3f}, {point[1]:.3f}) m in the table frame'
+    iy, ix = np.nonzero(np.isin(raster.labels, kept))
+    centres = raster.origin + (np.stack([ix, iy], axis=1) + 0.5) * raster.res
+    dist = np.linalg.norm(centres - point, axis=1)
+    if dist.size == 0 or dist.min() > params.target_tolerance_m + raster.res:
+        near = '' if dist.size == 0 else f' (nearest object {dist.min() * 1000:.0f} mm away)'
+        raise ValueError(f'{what} is on no object{near}: {kept.size} object(s) seen on the table')
+    return int(raster.labels[iy[np.argmin(dist)], ix[np.argmin(dist)]]), int(kept.size)
+
+
+def minimum_width(xy: np.ndarray) -> float:
+    """Smallest extent (m) of points ``(K, 2)`` over all directions (exact: the hull's edge directions)."""
+    pts = np.asarray(xy, dtype=np.float64)
+    if pts.shape[0] < 3:
+        return 0.0
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    if hull.shape[0] < 3:
+        return 0.0
+    edges = np.roll(hull, -1, axis=0) - hull
+    length = np.linalg.norm(edges, axis=1)
+    edges, starts = edges[length > 0], hull[length > 0]
+    normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1) / np.linalg.norm(edges, axis=1)[:, None]
+    extent = np.abs((hull[None, :, :] - starts[:, None, :]) @ normals[..., None])[..., 0].max(axis=1)
+    return float(extent.min())
+
+
+def _check_target(target_px: np.ndarray, target_xy: np.ndarray, target_raster: np.ndarray, raster_res: float,
+                  params: SensingParams, intr: CameraIntrinsics) -> None:
+    """Refuse a target cut by the image (or pixel ROI) border, or with no part narrow enough for the gripper.
+
+    Too wide = the footprint's convex hull is wider than ``max_opening_m`` in every direction *and*
+    its largest inscribed disc is wider too (a toy plane's wings are wide but its fuselage fits)."""
+    vs, us = np.nonzero(target_px)
+    b = params.border_px
+    u_lo, v_lo, u_hi, v_hi = (0, 0, intr.width - 1, intr.height - 1) if params.roi_px is None else \
+        (max(0, params.roi_px[0]), max(0, params.roi_px[1]), min(intr.width - 1, params.roi_px[2]),
+         min(intr.height - 1, params.roi_px[3]))
+    if us.min() < u_lo + b or vs.min() < v_lo + b or us.max() > u_hi - b or vs.max() > v_hi - b:
+        raise ValueError(f'the target (pixels u {us.min()}..{us.max()}, v {vs.min()}..{vs.max()}) is cut by the image '
+                         'border: its shape is not fully seen (move the camera or the object, or choose another '
+                         'target)')
+    if params.max_opening_m > 0:
+        width = minimum_width(target_xy)
+        if width > params.max_opening_m:
+            padded = np.pad(target_raster.astype(np.uint8), 1)
+            inscribed = 2.0 * float(cv2.distanceTransform(padded, cv2.DIST_L2, 5).max()) * raster_res
+            if inscribed > params.max_opening_m:
+                raise ValueError(f'the target is {width * 1000:.0f} mm wide in its narrowest direction and no part of '
+                                 f'it is narrower than {inscribed * 1000:.0f} mm: more than the gripper opening '
+                                 f'max_opening_m = {params.max_opening_m * 1000:.0f} mm')
+
+
+def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJECT_HEIGHT_PERCENTILE,
+                  min_pixels: int = 10) -> float:
+    """Height (m) of an object above the table: the ``percentile`` of the heights (m, along the table normal)
+    of its pixels ``seen`` in depth above the table; 0 (unknown) with fewer than ``min_pixels`` of them.
+
+    A high percentile rather than the maximum: the top face (or the crest of a lying cylinder) is the
+    highest part seen, and 5 % of the pixels may be depth outliers (flying pixels at edges). Parts
+    without a depth return (specular, or transparent ones the sensor sees through: their depth is the
+    table's) are not measured, so an object seen only through holes and colour has an unknown height,
+    and one whose top is entirely specular is measured by its highest seen part (its walls)."""
+    h = np.asarray(height, dtype=np.float64)[np.asarray(seen, dtype=bool)]
+    h = h[np.isfinite(h)]
+    if h.size < max(1, min_pixels):
+        return 0.0
+    return max(0.0, float(np.percentile(h, percentile)))
+
+
+class Objects(NamedTuple):
+    """The objects seen on the table and the target among them."""
+
+    raster: _Raster  # table-plane raster of the evidence components
+    px_labels: np.ndarray  # (H, W) int, component of each evidence pixel (0 = none)
+    target: int  # the target's label
+    objects_seen: int  # components kept (not specks)
+    target_px: np.ndarray  # (H, W) bool, the target's evidence pixels
+
+
+def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarray,
+                   missing_px: np.ndarray, foot_xy: np.ndarray, footprint: float, intrinsics: CameraIntrinsics,
+                   params: SensingParams) -> Objects:
+    """Evidence (o, p_d or p_c > 0.5, or missing) above the plane, on the table's extent and in the region of
+    interest, split into objects in the table plane; the target selected and checked."""
+    h, w = missing_px.shape
+    height, inlier = meas.height, fit.inlier
+    evidence = (occ > 0.5) | (ev.p_d > 0.5) | (ev.p_c > 0.5) | missing_px
+    if params.morph_kernel_px > 1:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.morph_kernel_px, params.morph_kernel_px))
+        evidence = cv2.morphologyEx(evidence.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
+    h_ok = np.nan_to_num(height, nan=0.0)
+    evidence &= (h_ok > -fit.band) & (h_ok < params.max_object_height_m) & np.isfinite(foot_xy).all(axis=-1)
+    if params.roi_px is not None:
+        u0, v0, u1, v1 = params.roi_px
+        uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+        evidence &= (uu >= u0) & (uu <= u1) & (vv >= v0) & (vv <= v1)
+    if params.roi_table is not None:
+        x0, y0, x1, y1 = params.roi_table
+        fx_, fy_ = foot_xy[..., 0], foot_xy[..., 1]
+        evidence &= (fx_ >= x0) & (fx_ <= x1) & (fy_ >= y0) & (fy_ <= y1)
+    # the table's extent is the hull of the inliers' feet, decided by the rim of the inlier region (the feet of
+    # plane points are a projective image of the pixels: interior pixels are never hull vertices)
+    rim = inlier & ~cv2.erode(inlier.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                              borderValue=0).astype(bool)
+    inlier_xy = foot_xy[rim]
+    raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
+                                          np.where(ev.p_d > 0.5, height, np.nan))
+    target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics)
+    target_px = px_labels == target
+    _check_target(target_px, foot_xy[target_px], raster.labels == target, raster.res, params, intrinsics)
+    return Objects(raster, px_labels, target, objects_seen, target_px)

@@ -1,0 +1,67 @@
+"""The segmentation's data flow, one stage after another (see the package docstring)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics, average_frames, validate_frames
+from gpis_grasp_ros.core.sensing.clear_body import grow_target
+from gpis_grasp_ros.core.sensing.evidence import combine, soft_evidence
+from gpis_grasp_ros.core.sensing.noise_map import noise_map
+from gpis_grasp_ros.core.sensing.objects import isolate_target, object_height
+from gpis_grasp_ros.core.sensing.occlusion import move_seen_through, place_feet, sensor_shadow
+from gpis_grasp_ros.core.sensing.params import SensingParams, SensingResult
+from gpis_grasp_ros.core.sensing.rasterise import rasterise
+from gpis_grasp_ros.core.sensing.table import fit_table, pixel_footprint
+
+
+def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: np.ndarray | Sequence[np.ndarray],
+                   intrinsics: CameraIntrinsics, params: SensingParams = SensingParams(),
+                   frame_id: str = '') -> SensingResult:
+    """Segment the target object from N RGBD frames into an M x M occupancy grid and SDF noise map (III-B).
+
+    Args:
+        rgb_frames: ``(N, H, W, 3)`` uint8 RGB images (or one ``(H, W, 3)`` image).
+        depth_frames: ``(N, H, W)`` float depth in metres, NaN (or <= 0) = no return.
+        intrinsics: pinhole intrinsics of the (registered) images, pixels.
+        params: thresholds, table, target and grid settings (see :class:`SensingParams`).
+        frame_id: sensor frame stored in the returned geometry.
+
+    Returns:
+        :class:`SensingResult`. The grid lies in the table plane (``geometry.rotation`` = table frame).
+
+    Raises:
+        ValueError: wrong dtype or shape, no valid depth, no table plane (or seen edge-on), no object
+            on the table, target point on no object, target cut by the image border or too wide.
+    """
+    frames = average_frames(*validate_frames(rgb_frames, depth_frames, intrinsics), params)
+    fit, meas = fit_table(frames, intrinsics, params)
+    ev = soft_evidence(frames, fit, meas, params)
+    frames, meas, ev, through_px = move_seen_through(frames, fit, meas, ev, intrinsics, params)
+    footprint = pixel_footprint(frames.z_mean, fit, intrinsics)
+    shadow_px = sensor_shadow(frames, fit, meas, ev, intrinsics, params, footprint)
+    missing_px = frames.missing & ~shadow_px  # the sensor's shadow is table it did not measure, not missing
+    occ, rho = combine(ev, missing_px, params)  # missing = object
+    feet = place_feet(frames, fit, meas, missing_px, shadow_px, intrinsics, footprint)
+    objects = isolate_target(fit, meas, ev, occ, missing_px, feet.foot_xy, footprint, intrinsics, params)
+    target = grow_target(objects, frames, fit, meas, ev, occ, missing_px, feet, intrinsics, params)
+    cells = rasterise(target, missing_px, frames, fit, meas, ev.p_d, feet, footprint, intrinsics, params, frame_id)
+    noise = noise_map(cells, missing_px, target.target_px, feet.off_hull, params)
+
+    valid, target_px, colour = frames.valid, target.target_px, ev.colour
+    noise_px = np.where(missing_px, np.nan, meas.var_z + params.disagreement_variance_m2 * rho)
+    vs, us = np.nonzero(target_px)
+    return SensingResult(
+        occupancy=cells.occupancy, noise_variance=noise.noise, missing=cells.missing, geometry=cells.geometry,
+        table_depth=fit.table.offset_m, train_mask=noise.train_mask, observed=cells.observed,
+        occluded=cells.occluded, uncertain=noise.uncertain, disagreement=cells.disagreement, table=fit.table,
+        table_color=colour.table_rgb, color_threshold=colour.threshold, height_threshold=fit.h_thr,
+        effective_frames=frames.n_eff, objects_seen=objects.objects_seen, mean_depth=frames.z_mean,
+        valid_count=frames.count.astype(np.int64), height=meas.height, depth_mask=ev.p_d > 0.5,
+        rgb_mask=ev.p_c > 0.5, missing_mask=missing_px, object_mask=target_px, labels_px=objects.px_labels,
+        occupancy_px=target.occ, noise_px=noise_px,
+        disagreement_px=rho, bbox_px=(int(us.min()), int(vs.min()), int(us.max()), int(vs.max())),
+        intrinsics=intrinsics, object_height=object_height(meas.height, target_px & valid & (ev.p_d > 0.5)),
+        seen_through_px=through_px, shadow_px=shadow_px)

@@ -1,0 +1,91 @@
+"""The table plane: given or robustly fitted to the whole cloud, heights above it and its inlier pixels."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
+from gpis_grasp_ros.core.sensing.params import SensingParams
+from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
+
+
+class TableFit(NamedTuple):
+    """The table plane and what segmentation derives from it once."""
+
+    table: TableFrame  # camera frame, normal n towards the camera
+    rays: np.ndarray  # (H, W, 3) camera rays of the pixels
+    ray_n: np.ndarray  # (H, W) |ray . n|: height error per unit depth error along the ray
+    band: np.ndarray  # (H, W) m, plane inlier band
+    inlier: np.ndarray  # (H, W) bool, pixels on the plane
+    h_thr: float  # m, depth-evidence height threshold
+
+
+class Measurement(NamedTuple):
+    """Per-pixel geometry of the averaged depths."""
+
+    points: np.ndarray  # (H, W, 3) camera-frame points (m), NaN where no return
+    height: np.ndarray  # (H, W) m above the plane along its normal, NaN where no return
+    z_safe: np.ndarray  # (H, W) m, depth, the plane's offset where no return
+    var_z: np.ndarray  # (H, W) m^2, variance of the averaged depth
+    s_h: np.ndarray  # (H, W) m, its noise projected on the normal
+
+
+def _table_frame(points: np.ndarray, valid: np.ndarray, params: SensingParams) -> TableFrame:
+    """Given (``table_plane``, ``table_depth_m``) or fitted (MSAC over the whole cloud) table plane."""
+    if params.table_plane is not None:
+        frame = TableFrame.from_plane(*params.table_plane)
+    elif params.table_depth_m is not None:
+        if not (math.isfinite(params.table_depth_m) and params.table_depth_m > 0):
+            raise ValueError(f'table_depth_m must be positive metres, got {params.table_depth_m}')
+        frame = TableFrame.from_plane(0.0, 0.0, -1.0, float(params.table_depth_m))
+    else:
+        return fit_table_plane(points[valid], params.sensor, band_sigmas=params.plane_band_sigmas,
+                               band_floor_m=params.plane_band_floor_m, min_inlier_fraction=params.min_plane_fraction,
+                               max_tilt_deg=params.max_tilt_deg)
+    if frame.tilt_deg > params.max_tilt_deg:
+        raise ValueError(f'the given table plane is seen at {frame.tilt_deg:.0f} degrees (more than '
+                         f'{params.max_tilt_deg:.0f}): edge-on')
+    return frame
+
+
+def measure(z: np.ndarray, frames: AveragedFrames, table: TableFrame, rays: np.ndarray, ray_n: np.ndarray,
+            sensor: SensorModel) -> Measurement:
+    """Camera points, heights above the plane (NaN where no return), depths with the plane's offset where
+    none, their averaged variance and the height noise s_h of depths ``z`` (m) - for the frames' returns,
+    and again after the see-through test moved some."""
+    valid = frames.valid
+    pts = rays * np.where(valid, z, np.nan)[..., None]
+    z_ok = np.where(valid, z, table.offset_m)
+    var = sensor.variance(z_ok) / np.maximum(frames.count_eff, 1.0)
+    return Measurement(pts, np.where(valid, pts @ table.n + table.offset_m, np.nan), z_ok, var,
+                       np.sqrt(var) * np.maximum(ray_n, 1e-3))
+
+
+def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
+              params: SensingParams) -> tuple[TableFit, Measurement]:
+    """The table plane from the whole valid cloud (or as given), its inliers and the depth-evidence threshold
+    max(``height_threshold``, 2 x the inliers' RMS), and the pixels' heights above it."""
+    valid = frames.valid
+    rays = intrinsics.rays()
+    points = rays * np.where(valid, frames.z_mean, np.nan)[..., None]
+    table = _table_frame(points, valid, params)
+    ray_n = np.abs(rays @ table.n)  # height error per unit depth error along the ray
+    meas = measure(frames.z_mean, frames, table, rays, ray_n, params.sensor)
+    band = np.maximum(params.plane_band_floor_m, params.plane_band_sigmas * params.sensor.sigma(meas.z_safe))
+    inlier = valid & (np.abs(np.nan_to_num(meas.height, nan=1.0)) <= band)
+    if inlier.sum() < 20:
+        raise ValueError(f'only {int(inlier.sum())} pixels lie on the table plane: cannot estimate the table '
+                         '(check table_plane / table_depth_m, or the depth image)')
+    rms = float(np.sqrt(np.mean(meas.height[inlier] ** 2)))
+    h_thr = max(params.height_threshold, 2.0 * rms)
+    return TableFit(table, rays, ray_n, band, inlier, h_thr), meas
+
+
+def pixel_footprint(z_mean: np.ndarray, fit: TableFit, intrinsics: CameraIntrinsics) -> float:
+    """A pixel's extent on the table (m), at the inliers' median depth."""
+    return float(np.median(z_mean[fit.inlier])) / min(intrinsics.fx, intrinsics.fy) / max(
+        math.cos(math.radians(fit.table.tilt_deg)), 0.3)

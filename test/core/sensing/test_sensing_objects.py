@@ -1,0 +1,86 @@
+"""Objects stage (core.sensing.objects): touching objects split, specks dropped, the target picked."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpis_grasp_ros.core.sensing import (
+    CameraIntrinsics,
+    SensingParams,
+    minimum_width,
+    nearest_pixel,
+    object_height,
+    split_touching,
+)
+from gpis_grasp_ros.core.sensing.objects import _Raster, _select_target
+
+
+def test_two_touching_boxes_are_split_at_their_contact():
+    """Two 12 x 12-cell squares joined by a 2-cell neck: one component, split into two of the squares' size."""
+    labels = np.zeros((20, 40), np.int32)
+    labels[4:16, 4:16] = 1
+    labels[4:16, 24:36] = 1
+    labels[9:11, 16:24] = 1  # the contact
+    out, origin = split_touching(labels, neck_cells=1.0)
+    parts = [lab for lab in np.unique(out) if lab > 0]
+    assert len(parts) == 2 and list(origin[parts]) == [1, 1]
+    assert len(np.unique(out[4:16, 4:16])) == 1 and len(np.unique(out[4:16, 24:36])) == 1
+    assert out[10, 10] != out[10, 30]
+    assert all(abs(int((out == p).sum()) - 12 * 12 - 8) <= 8 for p in parts)
+
+
+def test_an_object_with_a_narrow_part_stays_whole():
+    labels = np.zeros((20, 40), np.int32)
+    labels[4:16, 4:16] = 1
+    labels[9:11, 16:34] = 1  # a marker's tip: no second blob
+    out, _ = split_touching(labels, neck_cells=1.0)
+    assert np.array_equal(out > 0, labels > 0) and len(np.unique(out[out > 0])) == 1
+
+
+def _scene_labels() -> tuple[np.ndarray, _Raster, np.ndarray, CameraIntrinsics]:
+    """Three components in the table raster (5 mm cells): 10 x 10 cells, 5 x 5 cells and one cell (a speck of
+    0.25 cm^2), with 200, 100 and 50 pixels."""
+    labels = np.zeros((30, 30), np.int32)
+    labels[2:12, 2:12] = 1
+    labels[20:25, 20:25] = 2
+    labels[27, 5] = 3
+    raster = _Raster(np.zeros(2), 0.005, labels)
+    px = np.zeros((40, 60), np.int64)
+    px[:10, :20] = 1
+    px[30:35, 40:60] = 2
+    px[20:25, 0:10] = 3
+    foot = np.full((40, 60, 2), np.nan)
+    return px, raster, foot, CameraIntrinsics(50.0, 50.0, 29.5, 19.5, 60, 40)
+
+
+def test_specks_are_not_objects():
+    px, raster, foot, intr = _scene_labels()
+    target, seen = _select_target(px, raster, foot, SensingParams(), intr)
+    assert (target, seen) == (1, 2)
+    target, seen = _select_target(px, raster, foot, SensingParams(min_object_area_m2=1e-5), intr)
+    assert seen == 3
+    with pytest.raises(ValueError, match='no object found'):
+        _select_target(px, raster, foot, SensingParams(min_object_area_px=1000), intr)
+
+
+def test_target_nearest_the_image_centre():
+    px, raster, foot, intr = _scene_labels()
+    px[:] = 0
+    px[0:5, 0:40] = 1  # centroid (19.5, 2)
+    px[15:25, 25:35] = 2  # centroid (29.5, 19.5): the image centre
+    assert _select_target(px, raster, foot, SensingParams(target='nearest_center'), intr)[0] == 2
+
+
+def test_minimum_width_object_height_and_nearest_pixel():
+    c, s = np.cos(0.3), np.sin(0.3)
+    corners = np.array([[0, 0], [0.08, 0], [0.08, 0.03], [0, 0.03]]) @ np.array([[c, s], [-s, c]])
+    assert minimum_width(corners) == pytest.approx(0.03)
+    h = np.linspace(0.0, 0.1, 101)
+    assert object_height(h, np.ones(101, bool)) == pytest.approx(0.095)
+    assert object_height(h, np.zeros(101, bool)) == 0.0
+    mask = np.zeros((5, 7), bool)
+    mask[1, 2] = True
+    dist, near = nearest_pixel(mask)
+    assert dist[1, 2] == 0 and dist[4, 6] == pytest.approx(5.0, abs=0.05)
+    assert (near == [1, 2]).all()
