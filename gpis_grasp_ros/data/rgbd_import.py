@@ -4,10 +4,12 @@ Inputs (:func:`load_capture`):
 
 * **colour**: any image OpenCV reads (PNG, JPEG, ...), 8-bit, converted to RGB.
 * **depth**: a 16-bit PNG in millimetres (0 = no return; ``depth_scale`` m per unit, default
-  0.001), a 32-bit float image (TIFF/EXR/PFM, metres), or a ``.npy`` array (integer = millimetres,
-  float = metres). Non-finite and <= 0 values are "no return" (NaN).
-* **intrinsics** (:func:`load_intrinsics`): a YAML file (or mapping) with ``fx, fy, cx, cy`` and
-  optionally ``width, height`` (aliases ``xres, yres``), or CameraInfo-like values: ``K`` / ``k``
+  0.001), a 32-bit float image in metres (TIFF or PFM through OpenCV; OpenEXR ``.exr``, as
+  ClearGrasp ships its depth, through the ``openexr`` library: :func:`read_exr`), or a ``.npy``
+  array (integer = millimetres, float = metres). Non-finite and <= 0 values are "no return" (NaN).
+* **intrinsics** (:func:`load_intrinsics`): a YAML or JSON file (or mapping) with ``fx, fy, cx, cy``
+  (or ``_fx, _fy, _cx, _cy``, the JSON form many grasping data sets ship) and optionally
+  ``width, height`` (aliases ``xres, yres``), or CameraInfo-like values: ``K`` / ``k``
   (row-major 3 x 3) with ``width``, ``height``, or the ROS camera_calibration layout
   ``camera_matrix: {data: [...]}`` with ``image_width``, ``image_height``. Images must be
   registered (depth in the colour camera's frame) and undistorted.
@@ -141,11 +143,42 @@ def depth_to_metres(raw: np.ndarray, depth_scale: float = 0.001, what: str = 'de
     return depth
 
 
+#: Channel names tried, in order, when an EXR holds several channels (ClearGrasp writes depth into R, G and B).
+EXR_DEPTH_CHANNELS = ('Z', 'depth', 'Y', 'R')
+
+
+def read_exr(path: str | os.PathLike[str]) -> np.ndarray:
+    """The depth channel of an OpenEXR file as an (H, W) float array, values as stored (no unit change).
+
+    A single-channel file gives that channel; otherwise the first of :data:`EXR_DEPTH_CHANNELS` present.
+    Reads with the ``openexr`` package (OpenCV's wheels ship with their EXR reader disabled)."""
+    p = _check_file(path, 'depth')
+    try:
+        import OpenEXR
+    except ImportError as exc:
+        raise ValueError(f"{p}: reading OpenEXR needs the 'openexr' package (pip install -r requirements.txt)") \
+            from exc
+    try:
+        with OpenEXR.File(str(p), separate_channels=True) as exr:
+            channels = {name: np.array(ch.pixels) for name, ch in exr.channels().items()}
+    except Exception as exc:  # noqa: BLE001 - the library raises plain RuntimeError/Exception on bad files
+        raise ValueError(f'{p}: not an OpenEXR file the openexr library can read ({exc})') from exc
+    if len(channels) == 1:
+        return next(iter(channels.values()))
+    for name in EXR_DEPTH_CHANNELS:
+        if name in channels:
+            return channels[name]
+    raise ValueError(f'{p}: no depth channel among {sorted(channels)} (expected one channel or one of '
+                     f'{list(EXR_DEPTH_CHANNELS)})')
+
+
 def load_depth(path: str | os.PathLike[str], depth_scale: float = 0.001) -> np.ndarray:
-    """16-bit PNG (mm), 32-bit float image (m) or ``.npy`` → (H, W) float64 m, NaN = no return."""
+    """16-bit PNG (mm), 32-bit float image (m: TIFF, PFM, EXR) or ``.npy`` → (H, W) float64 m, NaN = no return."""
     p = _check_file(path, 'depth')
     if p.suffix.lower() == '.npy':
         raw = np.load(p, allow_pickle=False)
+    elif p.suffix.lower() == '.exr':
+        raw = read_exr(p)
     else:
         raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
         if raw is None:
@@ -171,12 +204,12 @@ def _intrinsics_from_mapping(data: Mapping[str, Any], width: int | None, height:
             raise ValueError(f'K must have 9 values (row-major 3 x 3), got {k.size}')
         fx, fy, cx, cy = k[0], k[4], k[2], k[5]
     else:
-        vals = [get(n) for n in ('fx', 'fy', 'cx', 'cy')]
+        vals = [get(n, '_' + n) for n in ('fx', 'fy', 'cx', 'cy')]
         if any(v is None for v in vals):
-            raise ValueError('intrinsics need fx, fy, cx, cy (or K / camera_matrix)')
+            raise ValueError('intrinsics need fx, fy, cx, cy (or _fx, _fy, _cx, _cy, or K / camera_matrix)')
         fx, fy, cx, cy = (float(v) for v in vals)
-    w = get('width', 'xres', 'image_width')
-    h = get('height', 'yres', 'image_height')
+    w = get('width', 'xres', 'image_width', '_width')
+    h = get('height', 'yres', 'image_height', '_height')
     w = int(w) if w is not None else width
     h = int(h) if h is not None else height
     if w is None or h is None:
@@ -186,13 +219,23 @@ def _intrinsics_from_mapping(data: Mapping[str, Any], width: int | None, height:
 
 def load_intrinsics(source: str | os.PathLike[str] | Mapping[str, Any], width: int | None = None,
                     height: int | None = None) -> CameraIntrinsics:
-    """Intrinsics from a YAML file or a mapping (module docstring); ``width``/``height`` fill a missing size."""
+    """Intrinsics from a YAML or JSON file or a mapping (module docstring); ``width``/``height`` fill a missing
+    size."""
     if isinstance(source, Mapping):
         return _intrinsics_from_mapping(source, width, height)
     p = _check_file(source, 'intrinsics')
-    data = yaml.safe_load(p.read_text(encoding='utf8'))
+    text = p.read_text(encoding='utf8')
+    if p.suffix.lower() == '.json':
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f'{p}: not valid JSON ({exc})') from exc
+        kind = 'JSON object'
+    else:
+        data = yaml.safe_load(text)
+        kind = 'YAML mapping'
     if not isinstance(data, Mapping):
-        raise ValueError(f'{p}: expected a YAML mapping of intrinsics')
+        raise ValueError(f'{p}: expected a {kind} of intrinsics')
     return _intrinsics_from_mapping(data, width, height)
 
 
@@ -391,4 +434,4 @@ def write_capture_bag(capture: Capture, path: str | os.PathLike[str], truth: Gro
 
 __all__ = ['Capture', 'GroundTruth', 'capture_messages', 'capture_table', 'crop_and_scale', 'depth_to_metres',
            'ground_truth_from_mask', 'load_capture', 'load_depth', 'load_intrinsics', 'load_rgb', 'map_pixel',
-           'write_capture_bag']
+           'read_exr', 'write_capture_bag']

@@ -130,32 +130,55 @@ def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequ
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog='gpis-grasp import-rgbd', description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('output', help='bag to write (NAME.mcap = one file, else a rosbag2 directory)')
-    p.add_argument('--rgb', help='colour image (8-bit; PNG, JPEG, ...)')
-    p.add_argument('--depth', help='depth: 16-bit PNG (mm), 32-bit float image (m) or .npy')
-    p.add_argument('--depth-scale', type=float, default=0.001, help='metres per unit of integer depth (default mm)')
-    p.add_argument('--intrinsics', help='YAML with fx, fy, cx, cy [width, height] or CameraInfo-like K')
+    p.add_argument('output', help='bag to write (NAME.mcap = one MCAP file, any other name = a rosbag2 '
+                   'directory); with --evaluate: the bag to evaluate')
+    p.add_argument('--rgb', help='colour image, 8-bit, any format OpenCV reads (PNG, JPEG, ...); required '
+                   'unless --evaluate')
+    p.add_argument('--depth', help='depth registered to the colour image: 16-bit PNG (integer units of '
+                   '--depth-scale, 0 = no return), 32-bit float TIFF, PFM or OpenEXR .exr (m), or .npy (integer = '
+                   'units of --depth-scale, float = m); required unless --evaluate')
+    p.add_argument('--depth-scale', type=float, default=0.001,
+                   help='m per unit of integer depth (--depth, --gt-depth); float depth is always m '
+                        '(default 0.001: mm)')
+    p.add_argument('--intrinsics', help='YAML or JSON file with fx, fy, cx, cy (px) or _fx, _fy, _cx, _cy, and '
+                   'optionally width, height (px; default: the image size), or CameraInfo-like K / camera_matrix; '
+                   'no default: give this or all of --fx --fy --cx --cy')
     for name in ('fx', 'fy', 'cx', 'cy'):
-        p.add_argument(f'--{name}', type=float, help=f'{name} in pixels (instead of --intrinsics)')
+        p.add_argument(f'--{name}', type=float,
+                       help=f'{name} in px of the full-resolution image (instead of --intrinsics; no default)')
     p.add_argument('--crop', type=int, nargs=4, metavar=('U0', 'V0', 'U1', 'V1'),
-                   help='keep pixels U0 <= u < U1, V0 <= v < V1 (intrinsics follow)')
-    p.add_argument('--scale', type=float, default=1.0, help='downscale factor in (0, 1] after cropping')
-    p.add_argument('--gt-mask', help='ground truth: mask image of the objects (> 127 = object)')
-    p.add_argument('--gt-depth', help='ground truth: depth of the true shape (same formats as --depth)')
+                   help='keep pixels U0 <= u < U1, V0 <= v < V1 (px of the full-resolution image; intrinsics '
+                        'follow; default: no crop)')
+    p.add_argument('--scale', type=float, default=1.0,
+                   help='downscale factor in (0, 1] applied after cropping (1 = full resolution; default 1)')
+    p.add_argument('--gt-mask', help='ground truth: mask image of the objects, size of the capture (red or grey '
+                   'channel > 0 = object; the component containing --target-pixel is the target; default: no '
+                   'ground truth)')
+    p.add_argument('--gt-depth', help='ground truth: depth of the true shape, e.g. opaque copies of clear objects '
+                   '(same formats and units as --depth; default: no ground truth)')
     p.add_argument('--target-pixel', type=float, nargs=2, metavar=('U', 'V'),
-                   help='a pixel on the target (full-resolution image), for the ground truth')
+                   help='a pixel (px) on the target: of the full-resolution image when importing (for the ground '
+                        'truth), of the bag image with --evaluate; no default')
     p.add_argument('--sensor', default='realsense_d400', choices=[m for m in SENSOR_MODELS if m != 'custom'],
-                   help='noise model for the table fit of the ground truth (default realsense_d400)')
-    p.add_argument('--frame-id', default=ri.FRAME_ID, help=f'camera frame id (default {ri.FRAME_ID})')
-    p.add_argument('--overwrite', action='store_true', help='replace an existing output')
+                   help='depth-noise model of the camera: sets both the table-plane fit of the ground truth when '
+                        'importing and the segmentation of --evaluate (segmentation_node\'s sensor_model; '
+                        'default realsense_d400)')
+    p.add_argument('--frame-id', default=ri.FRAME_ID,
+                   help=f'frame_id written into every message header (default {ri.FRAME_ID})')
+    p.add_argument('--overwrite', action='store_true',
+                   help='replace an existing OUTPUT (default: refuse to overwrite)')
     p.add_argument('--evaluate', action='store_true',
-                   help='instead of importing: evaluate the bag OUTPUT (segmentation with target pixel --target-pixel '
-                        'in the bag image, GP-GPIS-OPT, simulated executions on its ground truth)')
-    p.add_argument('--trials', type=int, default=20, help='--evaluate: simulated executions (default 20)')
-    p.add_argument('--seed', type=int, default=0, help='--evaluate: planner and execution seed')
+                   help='instead of importing: evaluate the bag OUTPUT (segmentation with --sensor and target pixel '
+                        '--target-pixel in the bag image, the --method planner, --trials simulated executions on its '
+                        'ground truth; default: import)')
+    p.add_argument('--trials', type=int, default=20,
+                   help='--evaluate: simulated executions of the planned grasp on the ground truth (default 20)')
+    p.add_argument('--seed', type=int, default=0, help='--evaluate: planner and execution seed (default 0)')
     p.add_argument('--seeds', type=int, default=1,
-                   help='--evaluate: run seeds SEED ... SEED + SEEDS - 1 and print their successes and mean')
-    p.add_argument('--grid-size', type=int, default=25, help='--evaluate: M of the M x M planning grid (default 25)')
+                   help='--evaluate: run seeds SEED ... SEED + SEEDS - 1 and print their successes and mean '
+                        '(default 1)')
+    p.add_argument('--grid-size', type=int, default=25,
+                   help='--evaluate: M of the M x M planning grid, cells (default 25)')
     p.add_argument('--method', default='gp-gpis-opt', choices=METHODS,
                    help='--evaluate: planner (default gp-gpis-opt, as planner_node)')
     p.add_argument('--clear-body-height', type=float, default=0.0, metavar='M',
@@ -166,7 +189,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         'default: its default, 2)')
     p.add_argument('--oracle', action='store_true',
                    help='--evaluate: plan on the ground truth sampled at the planning grid (the best any perception '
-                        'can do at that resolution) instead of the perceived shape')
+                        'can do at that resolution) instead of the perceived shape (default: the perceived shape)')
     return p.parse_args(argv)
 
 
