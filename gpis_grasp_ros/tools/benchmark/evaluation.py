@@ -298,7 +298,9 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
             record = GraspRecord.from_plan(r)
             row: dict[str, Any] = {
                 'object': name, 'letter': letter, 'method': spec.key, 'label': spec.label, 'seed': seed,
-                'planner_seed': planner_seed, **record.columns(PLAN_COLUMNS), 'n_shape_samples': s.shape_samples,
+                # n_shape_samples next to the P_F estimate it qualifies (the CSV's column order)
+                'planner_seed': planner_seed, **record.columns(PLAN_COLUMNS[:9]), 'n_shape_samples': s.shape_samples,
+                **record.columns(PLAN_COLUMNS[9:]),
                 'n_candidates': int(r.n_candidates), 'converged': bool(r.converged),
                 'restarts': len(restarts), 'restarts_converged': sum(1 for i in restarts if i.converged),
             }
