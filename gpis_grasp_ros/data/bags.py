@@ -25,13 +25,7 @@ from gpis_grasp_ros.core.sensing import (
 )
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.data.bagio import read_messages
-
-CLOUD_TOPIC = '/camera/depth/points'
-RGB_TOPIC = '/camera/rgb/image_raw'
-DEPTH_TOPIC = '/camera/depth/image_raw'
-INFO_TOPIC = '/camera/rgb/camera_info'
-TRUE_SDF_TOPIC = '/ground_truth/sdf'
-TRUE_COM_TOPIC = '/ground_truth/center_of_mass'
+from gpis_grasp_ros.data.topics import TOPICS
 
 
 @dataclass
@@ -61,26 +55,26 @@ def load_bag(path: str | os.PathLike[str], frames: int = 10, source: str = 'clou
     info = None
     frame_id, stamp = '', 0
     scene_gt: dict = {}
-    topics = [CLOUD_TOPIC, RGB_TOPIC, DEPTH_TOPIC, INFO_TOPIC, TRUE_SDF_TOPIC, TRUE_COM_TOPIC]
+    topics = [TOPICS['points'], TOPICS['rgb'], TOPICS['depth'], TOPICS['rgb_info'], TOPICS['sdf'], TOPICS['com']]
     for topic, _type, _t, msg in read_messages(path, topics):
-        if topic == TRUE_SDF_TOPIC:
+        if topic == TOPICS['sdf']:
             scene_gt['sdf'], scene_gt['geometry'] = messages.float_grid_to_numpy(msg)
-        elif topic == TRUE_COM_TOPIC:
+        elif topic == TOPICS['com']:
             scene_gt['com'] = messages.point_stamped_to_numpy(msg)  # sensor frame, 3D
-        elif source == 'cloud' and topic == CLOUD_TOPIC and len(clouds) < frames:
+        elif source == 'cloud' and topic == TOPICS['points'] and len(clouds) < frames:
             clouds.append(messages.pointcloud2_to_xyz_rgb(msg))
             frame_id, stamp = msg.header.frame_id, messages.stamp_to_ns(msg.header.stamp)
-        elif source == 'images' and topic == INFO_TOPIC and info is None:
+        elif source == 'images' and topic == TOPICS['rgb_info'] and info is None:
             info = CameraIntrinsics(*messages.camera_info_to_intrinsics(msg))
-        elif source == 'images' and topic == RGB_TOPIC and len(rgbs) < frames:
+        elif source == 'images' and topic == TOPICS['rgb'] and len(rgbs) < frames:
             rgbs[messages.stamp_to_ns(msg.header.stamp)] = messages.image_to_numpy(msg)
-        elif source == 'images' and topic == DEPTH_TOPIC and len(depths) < frames:
+        elif source == 'images' and topic == TOPICS['depth'] and len(depths) < frames:
             key = messages.stamp_to_ns(msg.header.stamp)
             depths[key] = messages.image_to_numpy(msg).astype(np.float64)
             frame_id, stamp = msg.header.frame_id, key
     if source == 'cloud':
         if not clouds:
-            raise ValueError(f'{path}: no {CLOUD_TOPIC} messages')
+            raise ValueError(f"{path}: no {TOPICS['points']} messages")
         rgb, depth, intrinsics = frames_from_clouds(np.stack([c[0] for c in clouds]),
                                                     np.stack([c[1] for c in clouds]))
     elif source == 'images':

@@ -58,21 +58,10 @@ from gpis_grasp_ros.core.sdf import signed_distance
 from gpis_grasp_ros.core.sensing import CameraIntrinsics, nearest_pixel
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 from gpis_grasp_ros.data import bagio, messages
+from gpis_grasp_ros.data.topics import TOPIC_TYPES, TOPICS
 
 FRAME_ID = 'camera_color_optical_frame'
 DEFAULT_START_NS = 1_600_000_000_000_000_000
-TOPICS = {
-    'rgb': '/camera/rgb/image_raw', 'depth': '/camera/depth/image_raw', 'rgb_info': '/camera/rgb/camera_info',
-    'depth_info': '/camera/depth/camera_info', 'points': '/camera/depth/points',
-    'occupancy': '/ground_truth/occupancy', 'sdf': '/ground_truth/sdf', 'com': '/ground_truth/center_of_mass',
-    'outline': '/ground_truth/outline',
-}
-TYPES = {
-    'rgb': 'sensor_msgs/msg/Image', 'depth': 'sensor_msgs/msg/Image', 'rgb_info': 'sensor_msgs/msg/CameraInfo',
-    'depth_info': 'sensor_msgs/msg/CameraInfo', 'points': 'sensor_msgs/msg/PointCloud2',
-    'occupancy': 'nav_msgs/msg/OccupancyGrid', 'sdf': 'gpis_grasp_interfaces/msg/FloatGrid',
-    'com': 'geometry_msgs/msg/PointStamped', 'outline': 'geometry_msgs/msg/PolygonStamped',
-}
 
 
 @dataclass
@@ -391,14 +380,15 @@ def capture_messages(capture: Capture, f: Any, stamp_ns: int = DEFAULT_START_NS,
     out: list[tuple[str, str, int, Any]] = []
     hdr = messages.header(f, stamp_ns, frame_id)
     if truth is not None:
-        out.append((TOPICS['occupancy'], TYPES['occupancy'], stamp_ns,
+        out.append((TOPICS['occupancy'], TOPIC_TYPES[TOPICS['occupancy']], stamp_ns,
                     messages.numpy_to_occupancy_grid(f, truth.occupancy, truth.geometry, hdr)))
-        out.append((TOPICS['sdf'], TYPES['sdf'], stamp_ns,
+        out.append((TOPICS['sdf'], TOPIC_TYPES[TOPICS['sdf']], stamp_ns,
                     messages.numpy_to_float_grid(f, truth.sdf, truth.geometry, hdr, 'm')))
-        out.append((TOPICS['com'], TYPES['com'], stamp_ns, messages.point_stamped(f, truth.center_of_mass, hdr)))
+        out.append((TOPICS['com'], TOPIC_TYPES[TOPICS['com']], stamp_ns,
+                    messages.point_stamped(f, truth.center_of_mass, hdr)))
         pts = [f.new('geometry_msgs/msg/Point32', x=float(x), y=float(y), z=float(z))
                for x, y, z in truth.outline.astype(np.float32)]
-        out.append((TOPICS['outline'], TYPES['outline'], stamp_ns,
+        out.append((TOPICS['outline'], TOPIC_TYPES[TOPICS['outline']], stamp_ns,
                     f.new('geometry_msgs/msg/PolygonStamped', header=hdr,
                           polygon=f.new('geometry_msgs/msg/Polygon', points=pts))))
     t = stamp_ns + 1
@@ -407,11 +397,12 @@ def capture_messages(capture: Capture, f: Any, stamp_ns: int = DEFAULT_START_NS,
     info = messages.intrinsics_to_camera_info(f, i.fx, i.fy, i.cx, i.cy, i.width, i.height, h)
     depth32 = capture.depth.astype(np.float32)
     xyz = (i.rays() * capture.depth[..., None]).astype(np.float32)
-    out += [(TOPICS['rgb_info'], TYPES['rgb_info'], t, info),
-            (TOPICS['rgb'], TYPES['rgb'], t, messages.numpy_to_image(f, capture.rgb, 'rgb8', h)),
-            (TOPICS['depth_info'], TYPES['depth_info'], t, info),
-            (TOPICS['depth'], TYPES['depth'], t, messages.numpy_to_image(f, depth32, '32FC1', h)),
-            (TOPICS['points'], TYPES['points'], t, messages.xyz_rgb_to_pointcloud2(f, xyz, capture.rgb, h))]
+    out += [(TOPICS['rgb_info'], TOPIC_TYPES[TOPICS['rgb_info']], t, info),
+            (TOPICS['rgb'], TOPIC_TYPES[TOPICS['rgb']], t, messages.numpy_to_image(f, capture.rgb, 'rgb8', h)),
+            (TOPICS['depth_info'], TOPIC_TYPES[TOPICS['depth_info']], t, info),
+            (TOPICS['depth'], TOPIC_TYPES[TOPICS['depth']], t, messages.numpy_to_image(f, depth32, '32FC1', h)),
+            (TOPICS['points'], TOPIC_TYPES[TOPICS['points']], t,
+             messages.xyz_rgb_to_pointcloud2(f, xyz, capture.rgb, h))]
     return out
 
 
@@ -425,7 +416,7 @@ def write_capture_bag(capture: Capture, path: str | os.PathLike[str], truth: Gro
     with bagio.BagWriter(path, typestore=ts, custom_data=meta, overwrite=overwrite) as bag:
         for topic in dict.fromkeys(m[0] for m in msgs):
             latched = topic.startswith('/ground_truth/')
-            bag.add_topic(topic, TYPES[next(k for k, v in TOPICS.items() if v == topic)],
+            bag.add_topic(topic, TOPIC_TYPES[topic],
                           bagio.LATCHED_QOS if latched else bagio.SENSOR_QOS)
         for topic, _type, t_ns, msg in msgs:
             bag.write(topic, t_ns, msg)

@@ -80,6 +80,7 @@ from scipy import ndimage
 
 from gpis_grasp_ros.core import noise_model
 from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.data.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS, TOPIC_TYPES, TOPICS
 
 FRAME_ID = 'camera_rgb_optical_frame'
 MATERIAL_KINDS: tuple[str, ...] = ('opaque', 'transparent', 'specular', 'dark', 'noisy')
@@ -106,31 +107,6 @@ DEFAULT_SHADOW_STRENGTH = 0.5
 _HEIGHT_EPS_M = 1e-9
 DEFAULT_START_NS = 1_432_598_400_000_000_000  # 2015-05-26T00:00:00Z (ICRA 2015), fixed for determinism
 
-TOPICS: dict[str, str] = {
-    'points': '/camera/depth/points',
-    'rgb': '/camera/rgb/image_raw',
-    'depth': '/camera/depth/image_raw',
-    'rgb_info': '/camera/rgb/camera_info',
-    'depth_info': '/camera/depth/camera_info',
-    'occupancy': '/ground_truth/occupancy',
-    'sdf': '/ground_truth/sdf',
-    'com': '/ground_truth/center_of_mass',
-    'outline': '/ground_truth/outline',
-}
-TOPIC_TYPES: dict[str, str] = {
-    TOPICS['points']: 'sensor_msgs/msg/PointCloud2',
-    TOPICS['rgb']: 'sensor_msgs/msg/Image',
-    TOPICS['depth']: 'sensor_msgs/msg/Image',
-    TOPICS['rgb_info']: 'sensor_msgs/msg/CameraInfo',
-    TOPICS['depth_info']: 'sensor_msgs/msg/CameraInfo',
-    TOPICS['occupancy']: 'nav_msgs/msg/OccupancyGrid',
-    TOPICS['sdf']: 'gpis_grasp_interfaces/msg/FloatGrid',
-    TOPICS['com']: 'geometry_msgs/msg/PointStamped',
-    TOPICS['outline']: 'geometry_msgs/msg/PolygonStamped',
-}
-GROUND_TRUTH_TOPICS: tuple[str, ...] = (TOPICS['occupancy'], TOPICS['sdf'], TOPICS['com'], TOPICS['outline'])
-CAMERA_TOPICS: tuple[str, ...] = (TOPICS['rgb_info'], TOPICS['rgb'], TOPICS['depth_info'], TOPICS['depth'],
-                                  TOPICS['points'])
 
 
 # =========================================================================== polygons

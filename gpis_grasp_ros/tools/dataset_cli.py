@@ -1,4 +1,4 @@
-"""``gpis-grasp make-dataset``: a deterministic object set for dataset-scale evaluation (issue 13).
+"""``gpis-grasp make-dataset``: a deterministic object set for dataset-scale evaluation.
 
     gpis-grasp make-dataset --n 200 --seed 0 --out data/set0 [--paper A,B,...|all] [--bag my.mcap ...]
                             [--bags] [--size-range 0.02,0.14] [--frames 10]

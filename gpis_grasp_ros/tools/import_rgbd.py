@@ -26,13 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
-from gpis_grasp_ros.core.contacts import GripperParams, bilinear
+from gpis_grasp_ros.core.contacts import GripperParams
 from gpis_grasp_ros.core.noise_model import SENSOR_MODELS, SensorModel
 from gpis_grasp_ros.core.pipeline import posterior_from_grids
-from gpis_grasp_ros.core.planners import METHODS, PlannerParams, execute_grasp_trials, plan
+from gpis_grasp_ros.core.planners import METHODS, PlannerParams, plan
 from gpis_grasp_ros.core.sensing import SensingParams, SensingResult
 from gpis_grasp_ros.data import rgbd_import as ri
-from gpis_grasp_ros.data.bags import load_bag, posterior_from_scene
+from gpis_grasp_ros.data.bags import load_bag
+from gpis_grasp_ros.tools.evaluation.tasks import fit_scene
+from gpis_grasp_ros.tools.evaluation.truth import TrueShape
 
 
 @dataclass
@@ -95,9 +97,11 @@ def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequ
         raise ValueError(f'{path}: no ground truth in the bag')
     params = SensingParams(sensor=SensorModel.named(sensor), target='pixel', target_point=tuple(target_px),
                            grid_size=int(grid_size), clear_body_height_m=float(clear_body_height_m))
-    posterior, result = posterior_from_scene(scene, params)
-    g, tg, true_sdf = result.geometry, scene.true_geometry, scene.true_sdf.astype(np.float64)
-    truth = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(g.cell_centers()))[0]) < 0
+    fit = fit_scene(scene, params)
+    posterior, result = fit.posterior, fit.sensing
+    g = result.geometry
+    true_shape = TrueShape(scene.true_sdf, scene.true_geometry, g)
+    truth = true_shape.values_at(g.cell_centers()) < 0
     mean_shape = posterior.mean < 0
     if oracle:
         posterior = posterior_from_grids(np.where(truth, 100, 0).astype(np.int8), np.full(g.shape, ORACLE_NOISE_M2), g)
@@ -109,8 +113,7 @@ def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequ
     gripper = GripperParams().resolved(g)
     others = _other_objects_xy(result)  # other objects seen, minus fragments of the true target (1 cm)
     if len(others):
-        on_target = bilinear(true_sdf, tg, tg.from_sensor(g.to_sensor(others))[0]) < 0.01
-        others = others[~on_target]
+        others = others[~(true_shape.values_at(others) < 0.01)]
     out = []
     for seed in seeds:
         grasp = plan(method, posterior, planner, seed=seed)
@@ -118,8 +121,7 @@ def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequ
             out.append(RealEvaluation(str(path), occupancy_iou, mean_shape_iou, 0, trials, float('nan'), float('nan'),
                                       result.objects_seen, result.table.tilt_deg, grasp.message))
             continue
-        jaws = [tg.from_sensor(g.to_sensor(np.asarray(j, dtype=np.float64)))[0] for j in (grasp.jaw1, grasp.jaw2)]
-        ok = execute_grasp_trials(true_sdf, tg, jaws[0], jaws[1], gripper, trials, np.random.default_rng(seed))
+        ok = true_shape.execute(grasp.jaw1, grasp.jaw2, gripper, trials, np.random.default_rng(seed))
         clearance = (float(min(np.linalg.norm(others - np.asarray(j), axis=1).min() for j in (grasp.jaw1, grasp.jaw2)))
                      if len(others) else float('inf'))
         out.append(RealEvaluation(str(path), occupancy_iou, mean_shape_iou, int(ok), trials, float(grasp.p_f),

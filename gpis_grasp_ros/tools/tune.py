@@ -1,4 +1,4 @@
-"""``gpis-grasp tune``: k-fold cross-validation of λ and α on a dataset (issue 13, paper section VI-A).
+"""``gpis-grasp tune``: k-fold cross-validation of λ and α on a dataset (paper section VI-A).
 
     gpis-grasp tune --dataset DIR --out DIR --lambda 0,0.5,1,2,4,8 --alpha 0.25,0.5,1,2 --folds 5
                     [--method gp-gpis-opt] [--seeds 1] [--executor serial|process|dask] [--workers N]
@@ -14,7 +14,7 @@ with unit normals ‖n1 + n2‖² = 4 sin²(φ/2), φ the angle between n1 and �
 hyperparameter. Both only affect GP-GPIS-OPT (and λ also GP-U), so ``--method`` defaults to
 ``gp-gpis-opt``.
 
-**Score.** Every object × (λ, α) × seed is one task of :mod:`gpis_grasp_ros.tools.evaluate` (same
+**Score.** Every object × (λ, α) × seed is one task of :mod:`gpis_grasp_ros.tools.evaluation` (same
 executors, incremental results and resume): the planned grasp is executed ``--trials`` times on the
 TRUE shape by the simulated gripper; the score of a task is its success rate (0 when the planner
 returns no grasp). Objects whose scene yields no GPIS or that have no ground truth are left out of
@@ -34,7 +34,7 @@ camera (:func:`class_table`): which kind of object a λ helps or hurts.
 tune ``runs/``) folder that are tasks of this tune — same dataset digest and settings (``run.json``),
 same method, object, seed, λ and α (a default λ/α is matched by its value) — instead of running them
 again (:func:`reuse_rows`): e.g. the λ = 2 column of a tune is the GP-GPIS-OPT column of an
-evaluation at the default λ. Rows are identical whatever the run (see :mod:`~gpis_grasp_ros.tools.evaluate`)
+evaluation at the default λ. Rows are identical whatever the run (see :mod:`~gpis_grasp_ros.tools.evaluation`)
 as long as the code is the same; each reused row records its source in ``reused_from``.
 """
 
@@ -52,7 +52,10 @@ from typing import Any
 
 import numpy as np
 
-from gpis_grasp_ros.tools import evaluate as ev
+from gpis_grasp_ros.tools.evaluate import add_run_arguments, floats, load_entries, settings_from_args
+from gpis_grasp_ros.tools.evaluation.reports import prepare_out, read_results, write_json
+from gpis_grasp_ros.tools.evaluation.runner import fingerprint, run_evaluation
+from gpis_grasp_ros.tools.evaluation.tasks import Task, make_tasks
 
 DEFAULT_LAMBDAS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
 DEFAULT_ALPHAS = (0.5,)
@@ -199,7 +202,7 @@ def class_table(rows: Sequence[dict[str, Any]], cv: CvResult, by: Sequence[str] 
     return '\n'.join(lines)
 
 
-def reuse_rows(source: str | Path, tasks: Sequence[ev.Task], dataset_digest: str) -> list[dict[str, Any]]:
+def reuse_rows(source: str | Path, tasks: Sequence[Task], dataset_digest: str) -> list[dict[str, Any]]:
     """Rows of an earlier run folder that are exactly tasks of this tune, relabelled with their task ids.
 
     The folder's ``run.json`` must record the same settings and dataset digest as ``tasks``;
@@ -208,7 +211,7 @@ def reuse_rows(source: str | Path, tasks: Sequence[ev.Task], dataset_digest: str
     run_json = src / 'run.json'
     if not run_json.exists():
         raise ValueError(f'--reuse {src}: no run.json (not an evaluate/tune results folder)')
-    if json.loads(run_json.read_text(encoding='utf8')) != ev.fingerprint(tasks, dataset_digest):
+    if json.loads(run_json.read_text(encoding='utf8')) != fingerprint(tasks, dataset_digest):
         raise ValueError(f'--reuse {src}: it was run with other settings or on another dataset (see {run_json})')
     from gpis_grasp_ros.core.planners import PlannerParams
 
@@ -217,18 +220,18 @@ def reuse_rows(source: str | Path, tasks: Sequence[ev.Task], dataset_digest: str
              float(d.uncertainty_penalty if t.uncertainty_penalty is None else t.uncertainty_penalty),
              float(d.antipodal_alpha if t.antipodal_alpha is None else t.antipodal_alpha)): t.task_id for t in tasks}
     out = []
-    for r in ev.read_results(src):
+    for r in read_results(src):
         tid = want.get((r['object'], r['method'], int(r['seed']), float(r['lambda']), float(r['alpha'])))
         if tid is not None:
             out.append({**r, 'task_id': tid, 'reused_from': str(src)})
     return out
 
 
-def add_reused(out: Path, tasks: Sequence[ev.Task], sources: Sequence[str], dataset_digest: str,
+def add_reused(out: Path, tasks: Sequence[Task], sources: Sequence[str], dataset_digest: str,
                fresh: bool) -> int:
     """Append the reusable rows of ``sources`` that ``out`` does not hold yet; how many were added."""
-    files = ev._prepare_out(out, ev.fingerprint(tasks, dataset_digest), fresh)
-    have = {r['task_id'] for r in ev.read_results(files.results)}
+    files = prepare_out(out, fingerprint(tasks, dataset_digest), fresh)
+    have = {r['task_id'] for r in read_results(files.results)}
     added = 0
     with open(files.results, 'a', encoding='utf8') as fh:
         for src in sources:
@@ -278,11 +281,11 @@ def write_outputs(cv: CvResult, out: Path, rows: Sequence[dict[str, Any]] = ()) 
             class_table(rows, cv)
     (out / 'tune.md').write_text(text + '\n', encoding='utf8')
     lam_c, a_c = cv.settings[cv.chosen]
-    (out / 'tune.json').write_text(json.dumps({
+    write_json(out / 'tune.json', {
         'chosen': {'lambda': lam_c, 'alpha': a_c}, 'settings': cv.settings, 'objects': cv.objects,
         'folds': cv.folds, 'fold_choice': [cv.settings[c] for c in cv.fold_choice],
         'fold_heldout': cv.fold_heldout.tolist(), 'bootstrap_wins': cv.bootstrap_wins.tolist(),
-        'excluded': cv.excluded}, indent=1) + '\n', encoding='utf8')
+        'excluded': cv.excluded}, indent=1)
     with open(out / 'cv_scores.csv', 'w', newline='', encoding='utf8') as fh:
         w = csv.writer(fh, lineterminator='\n')
         w.writerow(['object'] + [f'lambda={lam:g};alpha={a:g}' for lam, a in cv.settings])
@@ -295,10 +298,10 @@ def write_outputs(cv: CvResult, out: Path, rows: Sequence[dict[str, Any]] = ()) 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog='gpis-grasp tune', description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ev.add_run_arguments(p)
-    p.add_argument('--lambda', dest='lambdas', type=ev._floats, default=list(DEFAULT_LAMBDAS),
+    add_run_arguments(p)
+    p.add_argument('--lambda', dest='lambdas', type=floats, default=list(DEFAULT_LAMBDAS),
                    help='λ grid (default: 0,0.5,1,2,4,8)')
-    p.add_argument('--alpha', dest='alphas', type=ev._floats, default=list(DEFAULT_ALPHAS),
+    p.add_argument('--alpha', dest='alphas', type=floats, default=list(DEFAULT_ALPHAS),
                    help='α grid (default: 0.5)')
     p.add_argument('--folds', type=int, default=5)
     p.add_argument('--cv-seed', type=int, default=0, help='seed of the fold split and the bootstrap')
@@ -317,17 +320,17 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError('--lambda and --alpha need at least one value each')
         if any(v < 0 for v in args.lambdas) or any(v <= 0 for v in args.alphas):
             raise ValueError('λ must be >= 0 and α > 0')
-        entries, digest = ev.load_entries(args.dataset, args.objects)
+        entries, digest = load_entries(args.dataset, args.objects)
         if args.folds > len(entries):
             raise ValueError(f'--folds {args.folds} is more than the {len(entries)} objects of the dataset')
-        tasks = ev.make_tasks(entries, [args.method], range(max(1, args.seeds)), args.lambdas, args.alphas,
-                              ev.settings_from_args(args))
+        tasks = make_tasks(entries, [args.method], range(max(1, args.seeds)), args.lambdas, args.alphas,
+                              settings_from_args(args))
         fresh = args.fresh
         reused = 0
         if args.reuse:
             reused = add_reused(out / 'runs', tasks, args.reuse, digest, fresh)
             fresh = False
-        run = ev.run_evaluation(tasks, out / 'runs', args.executor, args.workers, args.scheduler, fresh=fresh,
+        run = run_evaluation(tasks, out / 'runs', args.executor, args.workers, args.scheduler, fresh=fresh,
                                 progress=not args.no_progress, dataset_digest=digest, affinity=args.affinity)
         cv = run_cv(run.rows, args.lambdas, args.alphas, args.folds, args.cv_seed)
     except ValueError as err:

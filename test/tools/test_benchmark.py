@@ -19,6 +19,9 @@ import pytest
 
 from gpis_grasp_ros.tools.benchmark import cli, report, scaling
 from gpis_grasp_ros.tools.benchmark import evaluation as ev
+from gpis_grasp_ros.tools.evaluation.runner import drain
+from gpis_grasp_ros.tools.evaluation.truth import TrueShape
+from gpis_grasp_ros.tools.seeds import derive_seed
 
 ROOT = Path(__file__).resolve().parents[2]
 BAGS = [ROOT / 'bags' / 'A_tape_dispenser.mcap', ROOT / 'bags' / 'B_nail.mcap']
@@ -156,16 +159,16 @@ def test_progress_messages_are_all_drained() -> None:
     seen: list[tuple[str, str]] = []
     for i in range(5):
         q.put(('obj', f'm{i}'))
-    ev._drain(q, seen.append)
+    drain(q, seen.append)
     assert len(seen) == 5
     threading.Timer(0.3, lambda: q.put(('obj', 'late'))).start()
-    ev._drain(q, seen.append, wait_s=3.0, complete=lambda: len(seen) >= 6)
+    drain(q, seen.append, wait_s=3.0, complete=lambda: len(seen) >= 6)
     assert seen[-1] == ('obj', 'late')
 
 
 def test_derived_seeds_are_stable_and_distinct() -> None:
-    assert ev.derive_seed('planner', 0, 'A_tape_dispenser') == ev.derive_seed('planner', 0, 'A_tape_dispenser')
-    seeds = {ev.derive_seed('planner', s, o) for s in range(3) for o in ('A', 'B', 'C')}
+    assert derive_seed('planner', 0, 'A_tape_dispenser') == derive_seed('planner', 0, 'A_tape_dispenser')
+    seeds = {derive_seed('planner', s, o) for s in range(3) for o in ('A', 'B', 'C')}
     assert len(seeds) == 9
 
 
@@ -211,10 +214,10 @@ def test_true_shape_maps_planning_grid_points_through_the_sensor_frame() -> None
     true_g = GridGeometry(-0.03, -0.06, 0.001, 120, 120, z=0.8, rotation=_rot(50, 5))
     xy = true_g.cell_centers()
     disc = np.hypot(xy[..., 0] - 0.03, xy[..., 1]) - 0.02  # disc of radius 2 cm at (3 cm, 0) of the true grid
-    centre = ev.TrueShape(disc, true_g, GridGeometry(0, 0, 0.005, 25, 25, z=0.8, rotation=_rot(50, 95))).to_plan(
+    centre = TrueShape(disc, true_g, GridGeometry(0, 0, 0.005, 25, 25, z=0.8, rotation=_rot(50, 95))).to_plan(
         np.array([0.03, 0.0]))
     plan_g = GridGeometry(centre[0] - 0.0625, centre[1] - 0.0625, 0.005, 25, 25, z=0.8, rotation=_rot(50, 95))
-    truth = ev.TrueShape(disc, true_g, plan_g)
+    truth = TrueShape(disc, true_g, plan_g)
     pts = np.random.default_rng(0).uniform(-0.05, 0.05, (20, 2))
     assert np.allclose(truth.to_true(truth.to_plan(pts)), pts, atol=1e-12)
     assert np.allclose(truth.com, [0.03, 0.0], atol=2e-4)
@@ -225,7 +228,7 @@ def test_true_shape_maps_planning_grid_points_through_the_sensor_frame() -> None
     assert status == 'ok' and q > 0
     assert truth.execute(j1, j2, gripper, 20, np.random.default_rng(1)) == 20
     # The same numbers read as if both grids were one frame would miss the disc entirely.
-    same_frame = ev.TrueShape(disc, true_g)
+    same_frame = TrueShape(disc, true_g)
     assert same_frame.nominal_quality(j1, j2, gripper)[1] != 'ok'
     assert truth.iou_on(plan_g, truth.values_at(plan_g.cell_centers())) == pytest.approx(1.0)
     assert truth.iou_on(plan_g, np.hypot(*(plan_g.cell_centers() - centre).T) - 0.02) > 0.9

@@ -1,4 +1,4 @@
-"""Dataset evaluation (tools/evaluate.py): the same rows from the serial, process and Dask executors,
+"""Dataset evaluation (tools/evaluate.py, tools/evaluation/): the same rows from the serial, process and Dask executors,
 retry-once-then-report, incremental results and resume after an interruption."""
 
 from __future__ import annotations
@@ -11,9 +11,11 @@ import psutil
 import pytest
 
 from gpis_grasp_ros.sim import dataset as ds
-from gpis_grasp_ros.tools import evaluate as ev
+from gpis_grasp_ros.tools import evaluate
+from gpis_grasp_ros.tools.evaluation import reports, runner
+from gpis_grasp_ros.tools.evaluation import tasks as task_lib
 
-TINY = ev.EvalSettings(grid_size=12, frames=2, grasp_samples=30, shape_samples=30, n_initial_grasps=2, trials=8)
+TINY = task_lib.EvalSettings(grid_size=12, frames=2, grasp_samples=30, shape_samples=30, n_initial_grasps=2, trials=8)
 METHODS = ('gp-m', 'gp-gpis-opt')
 
 
@@ -24,18 +26,18 @@ def dataset(tmp_path_factory):
 
 @pytest.fixture(scope='module')
 def tasks(dataset):
-    return ev.make_tasks(dataset.entries, METHODS, [0], settings=TINY)
+    return task_lib.make_tasks(dataset.entries, METHODS, [0], settings=TINY)
 
 
 @pytest.fixture(scope='module')
 def serial(tasks, tmp_path_factory):
-    return ev.run_evaluation(tasks, tmp_path_factory.mktemp('serial'), 'serial', progress=False)
+    return runner.run_evaluation(tasks, tmp_path_factory.mktemp('serial'), 'serial', progress=False)
 
 
 @pytest.fixture(scope='module')
 def dask_client():
     """A private LocalCluster on 127.0.0.1 without dashboard, closed at the end of the module."""
-    with ev.dask_client('local', workers=2) as client:
+    with runner.dask_client('local', workers=2) as client:
         yield client
 
 
@@ -65,7 +67,7 @@ def test_serial_rows(serial, tasks):
             assert r['message'] and not r['success'] and r['sim_trials'] == 0
     # the GPIS near the true surface: per object (both methods carry the same values), NaN without a GPIS
     for r in rows:
-        vals = [r[k] for k in ev.SURFACE_COLUMNS]
+        vals = [r[k] for k in task_lib.SURFACE_COLUMNS]
         if r['status'] == 'no_gpis':
             assert all(np.isnan(v) for v in vals)
         else:
@@ -75,7 +77,7 @@ def test_serial_rows(serial, tasks):
             assert z_rms > 0 and sd > 0 and abs(bias) < 3.0
     surface = {}
     for r in rows:
-        surface.setdefault(r['object'], set()).add(repr([r[k] for k in ev.SURFACE_COLUMNS]))
+        surface.setdefault(r['object'], set()).add(repr([r[k] for k in task_lib.SURFACE_COLUMNS]))
     assert all(len(v) == 1 for v in surface.values())
     # common random numbers: both methods of an object share the planner seed
     by_obj = {}
@@ -87,21 +89,21 @@ def test_serial_rows(serial, tasks):
 
 def test_process_and_dask_executors_give_identical_rows(serial, tasks, dask_client, tmp_path):
     # process pool: the first three objects (spawned workers import the package and fit their own GPIS)
-    process = ev.run_evaluation(tasks[:6], tmp_path / 'process', 'process', workers=2, progress=False)
+    process = runner.run_evaluation(tasks[:6], tmp_path / 'process', 'process', workers=2, progress=False)
     assert not process.failures
-    assert ev.comparable(process.rows) == ev.comparable(serial.rows[:6])
+    assert reports.comparable(process.rows) == reports.comparable(serial.rows[:6])
     # Dask: every socket of the private cluster (scheduler in this process, nannies and workers in
     # children) listens on the loopback interface only
     me = psutil.Process()
     listening = _listening([me.pid] + [c.pid for c in me.children(recursive=True)])
     assert listening and all(addr.ip == '127.0.0.1' for _, addr in listening), listening
     assert dask_client.scheduler_info()['address'].startswith('tcp://127.0.0.1:')
-    dask = ev.run_evaluation(tasks, tmp_path / 'dask', 'dask', client=dask_client, progress=False)
+    dask = runner.run_evaluation(tasks, tmp_path / 'dask', 'dask', client=dask_client, progress=False)
     assert not dask.failures
-    assert ev.comparable(dask.rows) == ev.comparable(serial.rows)
-    single = ev.run_evaluation(tasks[:4], tmp_path / 'dask-task', 'dask', client=dask_client, progress=False,
+    assert reports.comparable(dask.rows) == reports.comparable(serial.rows)
+    single = runner.run_evaluation(tasks[:4], tmp_path / 'dask-task', 'dask', client=dask_client, progress=False,
                                affinity='task')
-    assert ev.comparable(single.rows) == ev.comparable(serial.rows[:4])
+    assert reports.comparable(single.rows) == reports.comparable(serial.rows[:4])
     workers = {r['worker'] for r in dask.rows}
     assert len(workers) >= 1 and all(w.split(':')[1] != str(os.getpid()) for w in workers)
 
@@ -111,12 +113,12 @@ def test_failed_tasks_are_retried_once_then_reported(serial, tasks, dask_client,
     permanent = tasks[1].__class__(**{**tasks[1].__dict__, 'fail_first_attempts': 2})
     subset = [transient, permanent, tasks[2]]
     for executor, kw in (('serial', {}), ('dask', {'client': dask_client})):
-        run = ev.run_evaluation(subset, tmp_path / executor, executor, progress=False, **kw)
+        run = runner.run_evaluation(subset, tmp_path / executor, executor, progress=False, **kw)
         assert [r['task_id'] for r in run.rows] == [transient.task_id, tasks[2].task_id]
         retried = run.rows[0]
         assert retried['attempts'] == 2
-        expected = {k: v for k, v in ev.comparable([serial.rows[0]])[0].items() if k != 'attempts'}
-        assert {k: v for k, v in ev.comparable([retried])[0].items() if k != 'attempts'} == expected
+        expected = {k: v for k, v in reports.comparable([serial.rows[0]])[0].items() if k != 'attempts'}
+        assert {k: v for k, v in reports.comparable([retried])[0].items() if k != 'attempts'} == expected
         assert [f['task_id'] for f in run.failures] == [permanent.task_id]
         assert run.failures[0]['attempts'] == 2 and 'InjectedFailure' in run.failures[0]['error']
         written = [json.loads(x) for x in (tmp_path / executor / 'failures.jsonl').read_text().splitlines()]
@@ -133,7 +135,7 @@ class _Interrupt:
         self.calls += 1
         if self.calls == self.at:
             raise KeyboardInterrupt
-        return ev.execute(task, attempt)
+        return task_lib.execute(task, attempt)
 
 
 def test_interrupted_run_resumes_from_what_was_written(serial, tasks, tmp_path):
@@ -142,36 +144,37 @@ def test_interrupted_run_resumes_from_what_was_written(serial, tasks, tmp_path):
     part = tasks[4:]
     out = tmp_path / 'run'
     with pytest.raises(KeyboardInterrupt):
-        ev.run_evaluation(part, out, 'serial', progress=False, task_fn=_Interrupt(at=5))
-    assert len(ev.read_results(out)) == 4
+        runner.run_evaluation(part, out, 'serial', progress=False, task_fn=_Interrupt(at=5))
+    assert len(reports.read_results(out)) == 4
     # a row cut in the middle by the interruption is discarded
     with open(out / 'results.jsonl', 'a', encoding='utf8') as fh:
         fh.write('{"task_id": "gen_00004|gp-m|lam')
     counting = _Interrupt(at=-1)
-    run = ev.run_evaluation(part, out, 'serial', progress=False, task_fn=counting)
+    run = runner.run_evaluation(part, out, 'serial', progress=False, task_fn=counting)
     assert run.resumed == 4 and run.ran == len(part) - 4 == counting.calls
-    assert ev.comparable(run.rows) == ev.comparable(serial.rows[4:])
+    assert reports.comparable(run.rows) == reports.comparable(serial.rows[4:])
     lines = (out / 'results.jsonl').read_text().splitlines()
     assert len(lines) == len(part) and all(json.loads(x) for x in lines)
     # nothing left to do
-    again = ev.run_evaluation(part, out, 'serial', progress=False)
+    again = runner.run_evaluation(part, out, 'serial', progress=False)
     assert again.ran == 0 and again.resumed == len(part)
     # other settings in the same folder are refused; --fresh starts over
-    other = ev.make_tasks([t.entry for t in part[::2]], ['gp-m'], [0], settings=ev.EvalSettings(grid_size=10))
+    other = task_lib.make_tasks([t.entry for t in part[::2]], ['gp-m'], [0],
+                                settings=task_lib.EvalSettings(grid_size=10))
     with pytest.raises(ValueError, match='another run'):
-        ev.run_evaluation(other, out, 'serial', progress=False)
+        runner.run_evaluation(other, out, 'serial', progress=False)
 
 
 def test_evaluate_command(dataset, tmp_path, capsys):
     args = ['--dataset', str(dataset.root), '--out', str(tmp_path), '--objects', '2', '--methods', 'gp-m',
             '--grid-size', '12', '--frames', '2', '--grasp-samples', '30', '--shape-samples', '30',
             '--initial-grasps', '2', '--trials', '8', '--no-progress']
-    assert ev.main(args) == 0
+    assert evaluate.main(args) == 0
     out = capsys.readouterr().out
     assert '2 of 2 tasks done' in out and '| material_class |' in out
     assert (tmp_path / 'summary.md').exists() and (tmp_path / 'run.json').exists()
-    assert ev.main(args + ['--executor', 'dask', '--scheduler', 'udp://nowhere']) == 2
-    assert ev.main(['--dataset', str(tmp_path / 'none'), '--out', str(tmp_path)]) == 2
+    assert evaluate.main(args + ['--executor', 'dask', '--scheduler', 'udp://nowhere']) == 2
+    assert evaluate.main(['--dataset', str(tmp_path / 'none'), '--out', str(tmp_path)]) == 2
 
 
 def test_summary_and_projection_tables():
@@ -181,10 +184,10 @@ def test_summary_and_projection_tables():
              'p_f': float('nan'), 'sim_success_rate': float('nan'), 'planning_time_s': 0.3},
             {'material_class': 'dark', 'size_class': 'small', 'method': 'gp-m', 'status': 'no_gpis', 'success': False,
              'p_f': float('nan'), 'sim_success_rate': float('nan'), 'planning_time_s': float('nan')}]
-    table = ev.summary_table(rows)
+    table = reports.summary_table(rows)
     # no grasp counts as P_F 0 and success 0; the no-GPIS task is counted apart
     assert '| dark |  | gp-m | 3 | 1 | 0.400 | 0.250 | 0.200 |' in table
-    assert ev.surface_table(rows) == ''  # no object has the surface columns
+    assert reports.surface_table(rows) == ''  # no object has the surface columns
     surf = [{'object': o, 'method': m, 'material_class': mat, 'size_class': size, 'camera': cam,
              'mean_shape_iou': iou, 'gp_z_rms_near_surface': z, 'gp_bias_near_surface_cells': b,
              'gp_sd_near_surface_cells': sd}
@@ -193,13 +196,13 @@ def test_summary_and_projection_tables():
                                                     ('c', 'opaque', 'large', 'top-down', 0.9, 1.0, 0.0, 0.2))
             for m in ('gp-m', 'gp-gpis-opt')]
     surf.append({**surf[0], 'object': 'd', 'gp_z_rms_near_surface': float('nan')})  # no GPIS: left out
-    table = ev.surface_table(surf)
+    table = reports.surface_table(surf)
     # one value per object (not per task), medians over the objects of the group
     assert '| all |  |  | 3 | 0.70 | -0.20 | 0.20 | 2.0 |' in table
     assert '| dark |  |  | 2 | 0.60 | -0.30 | 0.20 | 3.0 |' in table
     assert '|  | large |  | 2 | 0.80 | -0.10 | 0.25 | 2.5 |' in table
     assert '|  |  | top-down | 1 | 0.90 | +0.00 | 0.20 | 1.0 |' in table
-    proj = ev.projection_markdown(task_s=2.0, overhead_s=0.5, tasks=100, cores_per_machine=2, machines=(1, 5))
+    proj = reports.projection_markdown(task_s=2.0, overhead_s=0.5, tasks=100, cores_per_machine=2, machines=(1, 5))
     # 1 machine: ceil(100 / 2) x 2.5 s = 125 s; 5 machines: ceil(100 / 10) x 2.5 s = 25 s
     assert '| 1 | 2 | 2.1 | 0.80 |' in proj and '| 5 | 10 | 0.4 | 4.00 |' in proj
-    assert np.isfinite(ev._mean([1.0, float('nan')]))
+    assert np.isfinite(reports._mean([1.0, float('nan')]))

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from gpis_grasp_ros.sim import dataset as ds
-from gpis_grasp_ros.tools import evaluate as ev
-from gpis_grasp_ros.tools import tune
+from gpis_grasp_ros.tools import evaluate, tune
+from gpis_grasp_ros.tools.evaluation.reports import read_results
 
 
 def _rows(scores: dict[str, dict[tuple[float, float], list[float]]], status: dict[str, str] | None = None):
@@ -83,8 +83,8 @@ def test_tune_command_end_to_end(tmp_path, capsys):
             '--initial-grasps', '2', '--trials', '8', '--no-progress']
     # an evaluation of GP-GPIS-OPT at the default λ (2) and α (0.5): the λ = 2 column of the tune
     evaluation = tmp_path / 'eval'
-    assert ev.main(['--dataset', str(data.root), '--out', str(evaluation), '--methods', 'gp-g'] + tiny) == 0
-    evaluated = {r['object']: r for r in ev.read_results(evaluation)}
+    assert evaluate.main(['--dataset', str(data.root), '--out', str(evaluation), '--methods', 'gp-g'] + tiny) == 0
+    evaluated = {r['object']: r for r in read_results(evaluation)}
     assert {(r['lambda'], r['alpha']) for r in evaluated.values()} == {(2.0, 0.5)}
     capsys.readouterr()
     args = ['--dataset', str(data.root), '--out', str(out), '--lambda', '0,2', '--alpha', '0.5', '--folds', '2'] + tiny

@@ -28,7 +28,7 @@ the default successive halving. Recorded per object × method × seed (``results
 * ``converged`` (the chosen restart met the SCP convergence test), ``restarts`` and
   ``restarts_converged`` for the optimisers.
 
-**Timing protocol** (item 8 of the faithful-core issue): every method is timed the same way —
+**Timing protocol**: every method is timed the same way —
 each plan once per seed by the planner's own clock (from the call to the choice of the grasp,
 without the final P_F evaluation), one object per process with one BLAS thread, the methods of
 an object run one after the other. Tables report the worst case over seeds (the paper's

@@ -278,7 +278,7 @@ def calibrate_object(posterior: GpisPosterior, truth: Any, planned: Sequence[dic
                      object_name: str = '') -> tuple[list[dict[str, Any]], dict[str, float]]:
     """Predictions and simulated outcomes of the planned grasps and ``n_candidates`` candidate grasps.
 
-    ``truth``: the ground truth (:class:`~gpis_grasp_ros.tools.benchmark.evaluation.TrueShape`:
+    ``truth``: the ground truth (:class:`~gpis_grasp_ros.tools.evaluation.truth.TrueShape`:
     ``values_at(xy)`` true SDF at planning-grid points, ``execute(jaw1, jaw2, gripper, trials, rng)``
     simulated executions of a planning-grid grasp). ``planned``: dicts with ``method``, ``seed``,
     ``jaw1``, ``jaw2`` (m) and ``p_f`` (the planner's reported P_F). Returns the rows (one per

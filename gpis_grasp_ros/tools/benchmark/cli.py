@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -39,6 +38,7 @@ from gpis_grasp_ros.tools.benchmark.report import (
     write_results_csv,
 )
 from gpis_grasp_ros.tools.benchmark.scaling import run_scaling, scaling_chart, scaling_markdown
+from gpis_grasp_ros.tools.evaluation.reports import write_json
 
 
 def _save(fig: Any, path: Path) -> Path:
@@ -64,7 +64,7 @@ def write_outputs(result: BenchmarkResult, out: Path, figures: bool = True) -> l
         paths.append(write_results_csv(out / 'calibration.csv', result.calibration_rows))
         (out / 'calibration.md').write_text(calibration_markdown(result, cal))
         paths.append(out / 'calibration.md')
-    (out / 'summary.json').write_text(json.dumps(summary, indent=2, default=_json_default))
+    write_json(out / 'summary.json', summary, end='', indent=2, default=_json_default)
     paths.append(out / 'summary.json')
     if figures:
         paths.append(_save(pf_bar_chart(result), out / 'pf_bars.png'))
@@ -104,8 +104,8 @@ def write_fig5(out: Path, settings: BenchmarkSettings, workers: int, progress: b
     write_results_csv(d / 'results.csv', result.rows)
     text = fig5_markdown(result, summary)
     (d / 'fig5.md').write_text(text)
-    (d / 'summary.json').write_text(json.dumps({'patterns': summary, 'wall_time_s': result.wall_time_s},
-                                               indent=2, default=_json_default))
+    write_json(d / 'summary.json', {'patterns': summary, 'wall_time_s': result.wall_time_s}, end='', indent=2,
+               default=_json_default)
     if figures:
         save_figure(fig5_figure(result, summary), d / 'fig5.png')
     return text

@@ -2,34 +2,34 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import multiprocessing as mp
 import os
-import queue
 import sys
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
-from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from gpis_grasp_ros.core.blur import gpis_blur
-from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, bilinear, find_contacts
 from gpis_grasp_ros.core.gpis import GpisPosterior, center_of_mass
 from gpis_grasp_ros.core.grid import GridGeometry
-from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
-from gpis_grasp_ros.core.planners import PlannerParams, execute_grasp_trials, plan
-from gpis_grasp_ros.core.quality import ferrari_canny_l1, torque_scale
-from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
+from gpis_grasp_ros.core.planners import PlannerParams, plan
+from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.tools.benchmark.calibration import calibrate_object
+from gpis_grasp_ros.tools.evaluation.runner import map_reporting
+from gpis_grasp_ros.tools.evaluation.tasks import (
+    EXECUTION_COLUMNS,
+    PLAN_COLUMNS,
+    PLAN_TIME_COLUMNS,
+    GraspRecord,
+    fit_scene,
+)
+from gpis_grasp_ros.tools.evaluation.truth import TrueShape
 from gpis_grasp_ros.tools.seeds import derive_seed
 
 # ------------------------------------------------------------------------------------------
@@ -86,8 +86,8 @@ PAPER_TABLE1: dict[str, dict[str, float]] = {
 #: Growth of the original implementation between M = 25 and M = 70 (seconds at 25, at 70): one
 #: SCP initialisation, and drawing 1000 shape samples. These figures are NOT in the paper (its
 #: text only refers to "the supplementary file" for convergence and time complexity); they come
-#: from the authors' code repository (Matlab + CVX, exact GP), as quoted in an earlier issue of
-#: this project (#7). Used only for the side-by-side growth ratios of the scaling report.
+#: from the authors' code repository (Matlab + CVX, exact GP), as quoted in an earlier report of
+#: this project. Used only for the side-by-side growth ratios of the scaling report.
 PAPER_SCALING: dict[str, tuple[float, float]] = {
     'gp_g_per_init_s': (8.4, 187.9),
     'sample_s': (1.5, 392.8),
@@ -150,99 +150,6 @@ def default_bags() -> list[Path]:
 # ------------------------------------------------------------------------------------------
 
 
-class TrueShape:
-    """Ground truth of a bag prepared for evaluation: SDF bank (m), centre of mass (m) and ρ (m).
-
-    **Frames.** The true SDF lives on its own grid (``geometry``, 1 mm, in the table frame of the
-    simulator), the planner's jaws on the planning grid (``plan_geometry``, the table frame fitted
-    by segmentation). With a tilted head camera the two differ by a rigid motion, so every point
-    goes planning grid → sensor frame → true grid (:meth:`to_true`), as ``gripper_sim_node`` does;
-    for the top-down bags this is the identity to ~1e-5 m. The centre of mass is that of
-    {sdf_true < 0} in the true grid's frame (uniform density; the bag's
-    ``ground_truth/center_of_mass`` message is in the camera frame).
-    """
-
-    def __init__(self, sdf: np.ndarray, geometry: GridGeometry, plan_geometry: GridGeometry | None = None) -> None:
-        self.sdf = np.asarray(sdf, dtype=np.float64)
-        self.geometry = geometry
-        self.plan_geometry = plan_geometry
-        self.com = center_of_mass(self.sdf[None], geometry)[0]
-        self.rho = torque_scale(self.sdf, geometry, self.com)
-        self.bank = SdfBank(self.sdf, geometry)
-
-    def to_true(self, xy: np.ndarray) -> np.ndarray:
-        """Planning-grid points ``(..., 2)`` (m) → the true grid's (x, y) (m), through the sensor frame."""
-        xy = np.asarray(xy, dtype=np.float64)
-        if self.plan_geometry is None:
-            return xy
-        return self.geometry.from_sensor(self.plan_geometry.to_sensor(xy, 0.0))[0]
-
-    def to_plan(self, xy: np.ndarray) -> np.ndarray:
-        """True-grid points ``(..., 2)`` (m) → planning-grid (x, y) (m)."""
-        xy = np.asarray(xy, dtype=np.float64)
-        if self.plan_geometry is None:
-            return xy
-        return self.plan_geometry.from_sensor(self.geometry.to_sensor(xy, 0.0))[0]
-
-    def values_at(self, xy_plan: np.ndarray) -> np.ndarray:
-        """True SDF (m) at planning-grid points ``(..., 2)``."""
-        return bilinear(self.sdf, self.geometry, self.to_true(xy_plan))
-
-    def nominal_quality(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams) -> tuple[float, str]:
-        """Q_N: Ferrari–Canny L1 of the unperturbed grasp (planning-grid m) on the true shape, and a status.
-
-        Status 'ok' (Q_N may still be <= 0: no force closure), else 'no_contact', 'start_inside'
-        or 'opening_exceeded' with Q_N = NaN.
-        """
-        j1 = np.asarray(jaw1, dtype=np.float64).reshape(1, 2)
-        j2 = np.asarray(jaw2, dtype=np.float64).reshape(1, 2)
-        if not (np.all(np.isfinite(j1)) and np.all(np.isfinite(j2))):
-            return float('nan'), 'no_grasp'
-        con = find_contacts(self.bank, self.to_true(j1), self.to_true(j2), gripper)
-        for name in ('opening_exceeded', 'start_inside', 'no_contact'):
-            if bool(getattr(con, name)[0]):
-                return float('nan'), name
-        q = ferrari_canny_l1(con.c1, con.c2, con.n1, con.n2, self.com, gripper.friction_coef, self.rho)
-        return float(q[0]), 'ok'
-
-    def execute(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams, trials: int,
-                rng: np.random.Generator) -> int:
-        """Successes of ``trials`` simulated executions (:func:`execute_grasp_trials`) of a planning-grid grasp."""
-        return execute_grasp_trials(self.sdf, self.geometry, self.to_true(jaw1), self.to_true(jaw2), gripper, trials,
-                                    rng, center_of_mass=self.com)
-
-    def outline(self) -> list[np.ndarray]:
-        """Boundary polylines of {sdf < 0} in planning-grid metres (outer outlines and holes)."""
-        mask = (self.sdf < 0).astype(np.uint8)
-        contours, _ = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
-        return [self.to_plan(self.geometry.to_metric(c.reshape(-1, 2).astype(np.float64)))
-                for c in contours if len(c) >= 3]
-
-    def iou_on(self, geometry: GridGeometry, mean_sdf: np.ndarray) -> float:
-        """IoU of {mean_sdf < 0} with the true shape sampled at the cell centres of ``geometry``."""
-        true_inside = self.values_at(geometry.cell_centers()) < 0
-        mean_inside = np.asarray(mean_sdf) < 0
-        union = np.count_nonzero(true_inside | mean_inside)
-        return float(np.count_nonzero(true_inside & mean_inside) / union) if union else float('nan')
-
-    def iou_fine(self, geometry: GridGeometry, mean_sdf: np.ndarray) -> float:
-        """IoU of {mean_sdf < 0} with the true shape on the *true* grid's cells (1 mm for the bags).
-
-        ``mean_sdf`` (on ``geometry``, the planning grid) is interpolated bilinearly at every true cell's centre;
-        true cells beyond the planning grid's outer cell centres are free. Unlike :meth:`iou_on` this counts the
-        parts of the object the planning grid does not cover, and does not quantise a shape narrower than a
-        planning cell into whole cells."""
-        xy = self.to_plan(self.geometry.cell_centers())
-        lo = np.array([geometry.origin_x, geometry.origin_y]) + 0.5 * geometry.resolution
-        hi = lo + (np.array(geometry.shape[::-1]) - 1) * geometry.resolution
-        covered = np.all((xy >= lo) & (xy <= hi), axis=-1)
-        mean_inside = np.zeros(covered.shape, dtype=bool)
-        mean_inside[covered] = bilinear(np.asarray(mean_sdf, dtype=np.float64), geometry, xy[covered]) < 0
-        true_inside = self.sdf < 0
-        union = np.count_nonzero(true_inside | mean_inside)
-        return float(np.count_nonzero(true_inside & mean_inside) / union) if union else float('nan')
-
-
 def com_statistics(posterior: GpisPosterior, n: int, rng: np.random.Generator, chunk: int = 250) -> tuple[float, float]:
     """RMS and 95th percentile (m) of |z(f_i) − z(μ)| over ``n`` joint shape samples f_i.
 
@@ -290,21 +197,6 @@ class ObjectResult:
     #: GP-G seed 0, one entry per restart: objective history per SCP iteration and flags.
     convergence: list[dict[str, Any]] = field(default_factory=list)
     calibration: list[dict[str, Any]] = field(default_factory=list)  # rows of the calibration study
-
-
-_PROGRESS_QUEUE: Any = None  # set in workers by _worker_init
-
-
-def _worker_init(progress_queue: Any) -> None:
-    """Worker start-up: remember the progress queue; limit BLAS/OpenMP pools to one thread (threadpoolctl)."""
-    global _PROGRESS_QUEUE
-    _PROGRESS_QUEUE = progress_queue
-    threadpool_limits(limits=1)
-
-
-def _run_object_in_worker(task: ObjectTask) -> ObjectResult:
-    q = _PROGRESS_QUEUE
-    return run_object(task, None if q is None else q.put)
 
 
 def _restart_history(info: Any) -> np.ndarray | None:
@@ -364,27 +256,6 @@ class PlanFailure:
     restarts: list = field(default_factory=list)
 
 
-def _segment(scene: Any, grid_size: int) -> tuple[Any, str]:
-    """Segmentation as the nodes run it; if the node's checks refuse the target, the reason and a run without them.
-
-    The benchmark evaluates the planners on every object: when segmentation refuses the target
-    with the node defaults (e.g. a target wider than the gripper opening in every direction), the
-    refusal is recorded (``segmentation_refusal`` in objects.csv, listed under Table I) and the
-    object is segmented again with that check off (``max_opening_m = 0``).
-    """
-    params = SensingParams(grid_size=grid_size)
-    try:
-        return segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, params,
-                              frame_id=scene.frame_id), ''
-    except ValueError as exc:
-        names = {f.name for f in dataclasses.fields(SensingParams)}
-        if 'max_opening_m' not in names or getattr(params, 'max_opening_m', 0) <= 0:
-            raise
-        relaxed = dataclasses.replace(params, max_opening_m=0.0)
-        return segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, relaxed,
-                              frame_id=scene.frame_id), str(exc)
-
-
 def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | None = None) -> ObjectResult:
     """Build the GPIS of one bag and run every method for every seed (see the module docstring).
 
@@ -397,13 +268,8 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
     name = bag.stem
     letter = object_letter(name)
     scene = load_bag(bag)
-    # posterior_from_scene, split in its two stages to time them separately.
-    t0 = time.perf_counter()
-    sensing, refusal = _segment(scene, s.grid_size)
-    occ, noise, geometry = publishable_grids(sensing)
-    t1 = time.perf_counter()
-    posterior = posterior_from_grids(occ, noise, geometry)
-    t2 = time.perf_counter()
+    fit = fit_scene(scene, SensingParams(grid_size=s.grid_size), relax_opening=True)
+    posterior, refusal, geometry = fit.posterior, fit.refusal, fit.geometry
     res = geometry.resolution
     truth = (TrueShape(scene.true_sdf, scene.true_geometry, geometry)
              if scene.true_sdf is not None and scene.true_geometry is not None else None)
@@ -415,7 +281,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
         'max_std_cells': float(np.sqrt(np.max(posterior.variance)) / res),
         'com_spread_rms_cells': com_rms / res, 'com_spread_p95_cells': com_p95 / res,
         'mean_shape_iou': truth.iou_on(geometry, posterior.mean) if truth is not None else float('nan'),
-        'sensing_time_s': t1 - t0, 'gpis_fit_time_s': t2 - t1, 'segmentation_refusal': refusal,
+        'sensing_time_s': fit.sensing_time_s, 'gpis_fit_time_s': fit.gpis_fit_time_s, 'segmentation_refusal': refusal,
     }
     rows: list[dict[str, Any]] = []
     grasps: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -429,13 +295,12 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
             planner_seed = derive_seed('planner', seed, name)
             r = _plan_or_failure(spec, posterior, params, planner_seed)
             restarts = list(getattr(r, 'restarts', []) or [])
+            record = GraspRecord.from_plan(r)
             row: dict[str, Any] = {
                 'object': name, 'letter': letter, 'method': spec.key, 'label': spec.label, 'seed': seed,
-                'planner_seed': planner_seed, 'success': bool(r.success), 'message': r.message,
-                'jaw1_x': float(r.jaw1[0]), 'jaw1_y': float(r.jaw1[1]),
-                'jaw2_x': float(r.jaw2[0]), 'jaw2_y': float(r.jaw2[1]), 'width_m': float(r.width),
-                'p_f': float(r.p_f), 'p_f_std_error': float(r.p_f_std_error), 'n_shape_samples': s.shape_samples,
-                'q_f_mean': float(r.q_mean), 'objective': float(r.objective), 'iterations': int(r.iterations),
+                # n_shape_samples next to the P_F estimate it qualifies (the CSV's column order)
+                'planner_seed': planner_seed, **record.columns(PLAN_COLUMNS[:9]), 'n_shape_samples': s.shape_samples,
+                **record.columns(PLAN_COLUMNS[9:]),
                 'n_candidates': int(r.n_candidates), 'converged': bool(r.converged),
                 'restarts': len(restarts), 'restarts_converged': sum(1 for i in restarts if i.converged),
             }
@@ -445,9 +310,8 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
                 succ = truth.execute(r.jaw1, r.jaw2, exec_gripper, s.trials, np.random.default_rng(gripper_seed))
             else:
                 q_n, status, succ = float('nan'), 'no_grasp' if truth is not None else 'no_ground_truth', 0
-            row.update({'q_n': q_n, 'q_n_status': status, 'sim_successes': int(succ), 'sim_trials': s.trials,
-                        'sim_success_rate': succ / s.trials if s.trials > 0 else float('nan'),
-                        'planning_time_s': float(r.planning_time), 'evaluation_time_s': float(r.evaluation_time)})
+            record.executed(succ, s.trials)
+            row.update({'q_n': q_n, 'q_n_status': status, **record.columns(EXECUTION_COLUMNS + PLAN_TIME_COLUMNS)})
             rows.append(row)
             if seed == 0 and r.success:
                 grasps[spec.key] = (np.asarray(r.jaw1, dtype=np.float64), np.asarray(r.jaw2, dtype=np.float64))
@@ -525,47 +389,10 @@ def run_benchmark(bags: Sequence[str | os.PathLike[str]], settings: BenchmarkSet
     tasks = [ObjectTask(b, settings, i) for i, b in enumerate(bags)]
     workers = max(1, min(int(workers or os.cpu_count() or 1), len(tasks)))
     t0 = time.perf_counter()
-    results: dict[int, ObjectResult] = {}
     with progress_bar(len(tasks) * steps_per_object(settings), progress, desc=desc) as bar:
         def advance(item: tuple[str, str]) -> None:
             bar.set_postfix_str(f'{item[0]} {item[1]}', refresh=False)
             bar.update(1)
 
-        if workers == 1:
-            with threadpool_limits(limits=1):
-                for task in tasks:
-                    results[task.index] = run_object(task, advance)
-        else:
-            ctx = mp.get_context('spawn')
-            progress_queue = ctx.Queue()
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                                     initargs=(progress_queue,)) as pool:
-                futures: dict[Future, ObjectTask] = {pool.submit(_run_object_in_worker, t): t for t in tasks}
-                pending = set(futures)
-                while pending:
-                    done, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
-                    _drain(progress_queue, advance)
-                    for fut in done:
-                        results[futures[fut].index] = fut.result()
-                # Messages still in the workers' queue feeders: wait for them (bounded).
-                _drain(progress_queue, advance, wait_s=2.0, complete=lambda: bar.n >= bar.total)
-            progress_queue.close()
-            progress_queue.join_thread()
-    return BenchmarkResult([results[i] for i in range(len(tasks))], settings, workers, time.perf_counter() - t0)
-
-
-def _drain(progress_queue: Any, advance: Callable[[tuple[str, str]], None], wait_s: float = 0.0,
-           complete: Callable[[], bool] | None = None) -> None:
-    """Hand every queued progress message to ``advance``; block up to ``wait_s`` for late ones until ``complete()``."""
-    deadline = time.perf_counter() + wait_s
-    while True:
-        if complete is not None and complete():
-            return
-        try:
-            left = deadline - time.perf_counter()
-            item = progress_queue.get(timeout=min(left, 0.2)) if left > 0 else progress_queue.get_nowait()
-        except queue.Empty:
-            if time.perf_counter() >= deadline:
-                return
-            continue
-        advance(item)
+        results = map_reporting(run_object, tasks, workers, advance, total=lambda: bar.n >= bar.total)
+    return BenchmarkResult(results, settings, workers, time.perf_counter() - t0)

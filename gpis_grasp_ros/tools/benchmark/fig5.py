@@ -44,11 +44,11 @@ from gpis_grasp_ros.tools.benchmark.evaluation import (
     METHOD_BY_KEY,
     BenchmarkResult,
     BenchmarkSettings,
-    TrueShape,
     run_benchmark,
 )
 from gpis_grasp_ros.tools.benchmark.figures import draw_grasp_panel
 from gpis_grasp_ros.tools.benchmark.report import _f2, _rate, _table, aggregate
+from gpis_grasp_ros.tools.evaluation.truth import TrueShape
 
 #: Placement of the toy plane in the scene (sim/objects.toy_plane: rotate by this angle, then shift; cm).
 PLANE_ROTATION_DEG = -10.0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from collections.abc import Iterable, Sequence
@@ -14,6 +13,7 @@ import numpy as np
 
 from gpis_grasp_ros.tools.benchmark.calibration import DIAGNOSTICS, PREDICTORS, summarise
 from gpis_grasp_ros.tools.benchmark.evaluation import METHOD_BY_KEY, PAPER_COLUMNS, PAPER_TABLE1, BenchmarkResult
+from gpis_grasp_ros.tools.evaluation.reports import write_csv
 
 # ------------------------------------------------------------------------------------------
 # Aggregation and tables
@@ -323,14 +323,8 @@ def calibration_markdown(result: BenchmarkResult, summary: dict[str, Any] | None
 
 
 def write_results_csv(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
-    """One row per object × method × seed (columns in the order of the first row)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, 'w', newline='') as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
-        writer.writeheader()
-        for r in rows:
-            writer.writerow({k: (f'{v:.10g}' if isinstance(v, float) else v) for k, v in r.items()})
-    return path
+    """One row per object × method × seed (columns in the order of the first row, floats to 10 digits)."""
+    return write_csv(path, rows, float_format='.10g', lineterminator='\r\n')
 
 
 # END
