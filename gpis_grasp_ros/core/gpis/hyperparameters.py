@@ -36,7 +36,7 @@ class HyperparameterFit:
     ``bound_hits`` names every bound the optimum sits on (``'length_scale_lower'``,
     ``'length_scale_upper'``, ``'signal_variance_lower'``, ``'signal_variance_upper'``): the
     likelihood would rise beyond it, the value is the bound's, not the data's. Every binding
-    bound is also logged (warning, logger ``gpis_grasp_ros.core.gpis``). ``cholesky_failures``
+    bound is also logged (warning, logger ``gpis_grasp_ros.core.gpis.hyperparameters``). ``cholesky_failures``
     counts likelihood evaluations whose K + N was not numerically positive definite (L-BFGS-B
     treats them as a wall; logged); ``failed_starts`` counts starts at which the factorisation
     failed, so that L-BFGS-B could not move from them. ``ok`` is False when no start produced a
@@ -93,7 +93,7 @@ def negative_log_marginal_likelihood(log_theta: np.ndarray, kernel: _DenseKernel
 
 def hyperparameter_bounds(geometry: GridGeometry, params: GpisParams,
                           inscribed_radius_m: float | None = None) -> tuple[tuple[float, float], tuple[float, float]]:
-    """Bounds (m^2, m) for C and l (module docstring, Hyperparameters).
+    """Bounds (m^2, m) for C and l (docs/gpis-model.md, Hyperparameters).
 
     l in [``length_scale_min_cells`` cells, min(``length_scale_max_extent`` x E,
     ``length_scale_max_thickness`` x ``inscribed_radius_m``)], sqrt(C) in ``signal_std_bounds`` x E,

@@ -106,9 +106,8 @@ def gradient_observations(sdf_m: np.ndarray, noise_variance_m2: np.ndarray, trai
     at a training cell whose two neighbours along that axis are training cells too. Its noise
     variance (dimensionless) is the sum of three independent errors:
 
-    * ``base_variance`` g0: the discretisation error of an EDT gradient component away from kinks.
-      Measured on rasterised discs (M = 25, radii 1.5 - 4.5 cm) against the analytic gradient the
-      RMS error is ~0.1 per component, so g0 = 0.01 by default.
+    * ``base_variance`` g0: the discretisation error of an EDT gradient component away from kinks
+      (default 0.01, docs/gpis-model.md, Gradient observations).
     * (1 - |g|)^2 with |g| the central-difference gradient's norm (both components defined): an SDF
       has |grad f| = 1 wherever it is differentiable, so a norm far from 1 marks a kink (medial
       axis, corners) where the gradient is not defined and the difference is unreliable.

@@ -15,7 +15,21 @@ from gpis_grasp_ros.core.grid import GridGeometry
 
 @dataclass
 class GpisPosterior:
-    """GPIS posterior on a metric grid (see the module docstring for the contract)."""
+    """GPIS posterior on the cells of a :class:`~gpis_grasp_ros.core.grid.GridGeometry` (extend, do not rename).
+
+    * ``mean``       (H, W) float64, posterior mean signed distance mu (m), eq. 1
+    * ``variance``   (H, W) float64, posterior marginal variance sigma^2 (m^2), eq. 2
+    * ``gradient``   (H, W, 2) float64, d mu / dx and d mu / dy (dimensionless): the exact gradient of the
+      posterior mean (kernel derivatives), with gradient observations also the posterior mean of the SDF
+      gradient
+    * ``cov_factor`` (H*W, r) float64, L with joint posterior covariance Sigma ~= L L^T of the SDF values
+      over the row-major flattened grid (r <= H*W); used by :meth:`sample`
+    * ``params``     :class:`KernelParams` (C in m^2, l in m, constant prior mean in m)
+    * value training data: ``train_xy`` (n, 2) m, ``train_y`` (n,) m, ``train_noise`` (n,) m^2
+    * gradient training data: ``train_grad_xy`` (k, 2) m, ``train_grad_axis`` (k,) 0 = d/dx, 1 = d/dy,
+      ``train_grad`` (k,) and ``train_grad_noise`` (k,) dimensionless
+    * ``hyperparameter_fit`` / ``bound_hits``: the maximum-likelihood search and the bounds it sits on
+    """
 
     geometry: GridGeometry
     mean: np.ndarray
@@ -30,7 +44,7 @@ class GpisPosterior:
     hyperparameters_optimized: bool = False
     # Extensions (defaults keep hand-built posteriors valid):
     alpha: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K + N)^-1 (y - m): values, then gradients
-    approximation: str = 'exact'  # 'exact' or 'reduced_rank' (see module docstring)
+    approximation: str = 'exact'  # 'exact' or 'reduced_rank' (docs/gpis-model.md, Computation)
     rank: int = 0  # columns of the weight-space basis (Kronecker modes)
     truncation: float = 0.0  # dropped share of the prior variance by the basis truncation
     log_marginal_likelihood: float = float('nan')  # log p(y, g | X, C, l, m) of all training data

@@ -60,7 +60,7 @@ class GpisParams:
     rank_tolerance: float = 1e-10  # relative eigenvalue cut-off of the Kronecker basis
     max_rank: int = 2000  # cap on the basis size r (memory H*W*r*8 bytes)
     blas_threads: int | None = 1  # BLAS threads during the fit (None = library default), see blas_threads()
-    length_scale_min_cells: float = 1.0  # lower bound on l in grid cells (module docstring: Hyperparameters)
+    length_scale_min_cells: float = 1.0  # lower bound on l in grid cells (docs/gpis-model.md, Hyperparameters)
     length_scale_max_extent: float = 1.0 / 6.0  # upper bound on l as a multiple of the grid extent E
     length_scale_max_thickness: float | None = 3.0  # upper bound on l as a multiple of the inscribed radius r_in
     signal_std_bounds: tuple[float, float] = (1e-3, 10.0)  # sqrt(C) x grid extent
@@ -120,7 +120,7 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
         fy_all, fx_all = basis.rows(k)
         rows_sel[k] = (sqrt_c * fy_all[:, basis.a], fx_all[:, basis.b])
 
-    # weight-space precision P = I + G_X^T N^-1 G_X and G_X^T N^-1 (y - m)
+    # weight-space precision P = I + G_X^T N^-1 G_X and G_X^T N^-1 (y - m) (R&W eq. 2.8 with Sigma_p = I)
     precision = None
     if on_grid:
         weights, rhs = {}, {}
@@ -150,7 +150,7 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
     ky_star = _se_1d(ys, obs.xy[:, 1], ell, 0, obs.py)  # (H, N)
     variance = None
     if on_grid or not exact:
-        # representer weights from the weight-space posterior mean (Woodbury):
+        # representer weights from the weight-space posterior mean (Woodbury, R&W eq. A.9):
         # alpha = (K + N)^-1 (y - m) = N^-1 (y - m - G_X w),  w = P^-1 G_X^T N^-1 (y - m)
         w_mean = cho_solve((chol_p, True), g_rhs, check_finite=False)
         if g_train is not None:
@@ -161,6 +161,7 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
                 fy_k, fx_k = rows_sel[k]
                 f_train[sel[k]] = ((fy_k * w_mean[None, :]) @ fx_k.T)[rows[sel[k]], cols[sel[k]]]
         alpha = (resid - f_train) / noise
+        # log |K + N| = log |P| + log |N| (determinant lemma, R&W eq. A.10); lml is R&W eq. 2.30
         logdet = 2.0 * float(np.sum(np.log(np.diag(chol_p)))) + float(np.sum(np.log(noise)))
         lml = -0.5 * float(resid @ alpha) - 0.5 * logdet - 0.5 * n * LOG_2PI
     else:  # exact with inputs off the grid: function-space Cholesky (the basis only serves sampling)
@@ -168,7 +169,7 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
         k_xx[np.diag_indices_from(k_xx)] += noise
         cf = cho_factor(k_xx, lower=True, check_finite=False)
         alpha = cho_solve(cf, resid, check_finite=False)
-        lml = -0.5 * float(resid @ alpha) - float(np.sum(np.log(np.diag(cf[0])))) - 0.5 * n * LOG_2PI
+        lml = -0.5 * float(resid @ alpha) - float(np.sum(np.log(np.diag(cf[0])))) - 0.5 * n * LOG_2PI  # R&W 2.30
         variance = _exact_variance(cf[0], c, kx_star, ky_star)
 
     # Sigma = G P^-1 G^T = (G L_P^-T)(G L_P^-T)^T over the grid values; its diagonal is eq. 2

@@ -12,10 +12,9 @@ _BLAS_CONTROLLER: list = []  # lazily created threadpoolctl.ThreadpoolController
 def blas_threads(n: int | None) -> Iterator[None]:
     """Limit BLAS/LAPACK to ``n`` threads inside the block (``None`` or 0: leave the default).
 
-    The fits are many mid-sized LAPACK calls (r, n ~ 10^2 - 10^3). On a 2-core robot computer
-    that also runs other ROS nodes, multi-threaded OpenBLAS collapses when its threads wait for
-    a busy core (measured: 30x slower hyperparameter searches under load); one thread is
-    predictable and barely slower on an idle machine. Uses threadpoolctl when installed.
+    The fits are many mid-sized LAPACK calls; on a loaded 2-core robot computer multi-threaded
+    OpenBLAS stalls while its threads wait for a busy core, one thread is predictable
+    (docs/gpis-model.md, BLAS threads). Uses threadpoolctl when installed.
     """
     if not n:
         yield
