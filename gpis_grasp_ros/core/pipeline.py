@@ -31,8 +31,8 @@ def publishable_grids(result: SensingResult) -> tuple[np.ndarray, np.ndarray, Gr
     Unknown = every cell outside ``train_mask`` (missing, or uncertain: see the sensing module's Noise
     map): -1 (``nav_msgs/OccupancyGrid``'s "unknown"), counted as object in the SDF, not trained.
     """
-    # floor, not round: a published value >= 50 exactly when the occupancy is >= 0.5, the threshold the SDF of
-    # build_gpis uses (0.498 would round to 50 and be object on one path, free on the other)
+    # floor, not round: a published value >= 50 exactly when the occupancy is >= 0.5, the object threshold of
+    # core.sdf (0.498 would round to 50 and be object in the grid, free in the sensing result)
     occ = np.clip(np.floor(result.occupancy * 100.0), 0, 100).astype(np.int8)
     occ[~result.train_mask] = -1
     noise = np.where(result.train_mask, result.noise_variance, np.nan).astype(np.float32)

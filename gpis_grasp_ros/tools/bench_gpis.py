@@ -38,9 +38,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from gpis_grasp_ros.core import gpis
 from gpis_grasp_ros.core.blur import gpis_blur
 from gpis_grasp_ros.core.gpis import GpisParams, GpisPosterior, blas_threads, fit_gpis
+from gpis_grasp_ros.core.gpis.kernel import _cross_joint, _DenseKernel
+from gpis_grasp_ros.core.gpis.observations import VALUE
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sdf import signed_distance
 
@@ -97,12 +98,12 @@ def dense_joint_reference(post: GpisPosterior) -> tuple[np.ndarray, np.ndarray]:
     """Dense function-space GP on all of ``post``'s observations (values + gradients) → (mean, variance) on the grid."""
     kp = post.params
     obs = post.observations()
-    a = kp.signal_variance * gpis._DenseKernel(obs)(kp.length_scale)[0]
+    a = kp.signal_variance * _DenseKernel(obs)(kp.length_scale)[0]
     a[np.diag_indices_from(a)] += obs.noise + post.jitter
     chol = np.linalg.cholesky(a)
-    resid = obs.y - np.where(obs.kind == gpis.VALUE, kp.prior_mean, 0.0)
+    resid = obs.y - np.where(obs.kind == VALUE, kp.prior_mean, 0.0)
     cells = post.geometry.cell_centers().reshape(-1, 2)
-    k_star = gpis._cross_joint(cells, obs, kp, 0, 0)  # (cells, N)
+    k_star = _cross_joint(cells, obs, kp, 0, 0)  # (cells, N)
     alpha = np.linalg.solve(chol.T, np.linalg.solve(chol, resid))
     v = np.linalg.solve(chol, k_star.T)
     shape = post.geometry.shape

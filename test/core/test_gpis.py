@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,13 +12,16 @@ from gpis_grasp_ros.core.gpis import (
     GpisParams,
     GpisPosterior,
     KernelParams,
-    build_gpis,
     com_spread,
     fit_gpis,
     gradient_observations,
+    hyperparameters,
     posterior_from_data,
 )
+from gpis_grasp_ros.core.gpis.kernel import _DenseKernel
+from gpis_grasp_ros.core.gpis.observations import _Observations
 from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.pipeline import posterior_from_grids
 from gpis_grasp_ros.core.sdf import signed_distance
 
 VALUE_ONLY = dict(gradient_observations=False)
@@ -323,7 +325,7 @@ def _joint_draw(g: GridGeometry, c: float, ell: float, prior: float, noise: floa
     f = u @ (np.sqrt(np.clip(lam, 0, None)) * rng.standard_normal(3 * n))
     noise_all = np.where(kind == 0, noise, grad_noise)
     y = f + np.where(kind == 0, prior, 0.0) + np.sqrt(noise_all) * rng.standard_normal(3 * n)
-    return gp._Observations.build(xy, y[:n], np.full(n, noise), pts[n:], kind[n:] - 1, y[n:], noise_all[n:])
+    return _Observations.build(xy, y[:n], np.full(n, noise), pts[n:], kind[n:] - 1, y[n:], noise_all[n:])
 
 
 @pytest.mark.parametrize('ell_cells', [1.5, 2.5, 4.0])
@@ -419,7 +421,7 @@ def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypa
             raise np.linalg.LinAlgError('not positive definite')
         return real(log_theta, *args)
 
-    monkeypatch.setattr(gp, 'negative_log_marginal_likelihood', failing_beyond)
+    monkeypatch.setattr(hyperparameters, 'negative_log_marginal_likelihood', failing_beyond)
     params = GpisParams(prior_mean=-0.01, length_scale_max_extent=1.0, n_restarts=4, seed=1)
     with caplog.at_level('WARNING', logger='gpis_grasp_ros.core.gpis'):
         fit = gp.fit_hyperparameters(g, obs, params)
@@ -428,7 +430,7 @@ def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypa
     assert any('not positive definite' in r.getMessage() for r in caplog.records)
     # every evaluation fails: the start values are kept, flagged and logged as an error
     caplog.clear()
-    monkeypatch.setattr(gp, 'negative_log_marginal_likelihood',
+    monkeypatch.setattr(hyperparameters, 'negative_log_marginal_likelihood',
                         lambda *a: (_ for _ in ()).throw(np.linalg.LinAlgError('not positive definite')))
     with caplog.at_level('WARNING', logger='gpis_grasp_ros.core.gpis'):
         fit = gp.fit_hyperparameters(g, obs, params)
@@ -440,7 +442,7 @@ def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypa
 def test_negative_log_likelihood_raises_on_singular_matrix_and_has_the_right_gradient():
     g = GridGeometry(0.0, 0.0, 0.01, 8, 8)
     obs = _joint_draw(g, 4e-4, 0.02, -0.01, 1e-7, 1e-3, np.random.default_rng(5))
-    kern = gp._DenseKernel(obs)
+    kern = _DenseKernel(obs)
     resid = obs.y - np.where(obs.kind == 0, -0.01, 0.0)
     theta = np.log([3e-4, 0.017])
     h = 1e-6
@@ -450,9 +452,9 @@ def test_negative_log_likelihood_raises_on_singular_matrix_and_has_the_right_gra
                - gp.negative_log_marginal_likelihood(theta - h * e, kern, resid, obs.noise)[0]) / (2 * h)
               for e in np.eye(2)]
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-4)
-    same = gp._Observations.build(np.zeros((2, 2)), np.zeros(2), np.zeros(2))  # two identical noise-free points
+    same = _Observations.build(np.zeros((2, 2)), np.zeros(2), np.zeros(2))  # two identical noise-free points
     with pytest.raises(np.linalg.LinAlgError):
-        gp.negative_log_marginal_likelihood(theta, gp._DenseKernel(same), np.ones(2), np.zeros(2))
+        gp.negative_log_marginal_likelihood(theta, _DenseKernel(same), np.ones(2), np.zeros(2))
 
 
 @pytest.mark.parametrize('max_exact', [2500, 0])
@@ -510,15 +512,13 @@ def test_reduced_rank_approximation_error_is_bounded():
         exact.log_marginal_likelihood)
 
 
-def test_build_gpis_from_sensing_result_excludes_missing_cells():
+def test_posterior_from_grids_excludes_missing_cells():
     g, true, _ = _disc_grid(m=16)
-    occupancy = (true < 0).astype(float)
     missing = np.zeros(g.shape, bool)
     missing[6:9, 6:9] = True
-    occupancy[missing] = 1.0
-    res = SimpleNamespace(occupancy=occupancy, noise_variance=np.full(g.shape, NOISE), missing=missing,
-                          train_mask=~missing, geometry=g)
-    post = build_gpis(res, GpisParams(optimize_hyperparameters=False))
+    occupancy = np.where(missing, -1, np.where(true < 0, 100, 0))
+    noise = np.where(missing, np.nan, NOISE)
+    post = posterior_from_grids(occupancy, noise, g, GpisParams(optimize_hyperparameters=False))
     assert isinstance(post, GpisPosterior)
     assert post.train_xy.shape[0] == g.width * g.height - missing.sum()
     assert np.all(post.mean[missing] < 0)
@@ -627,9 +627,9 @@ def test_opaque_box_keeps_its_calibrated_mean_shape():
 
 
 def test_unknown_cells_are_object_and_untrained_on_both_paths():
-    """build_gpis and the node path (publishable_grids -> posterior_from_grids) train on the same cells and
-    count every unknown cell as object (-1 in the published grid)."""
-    from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
+    """The sensing result's own grids and the published ones (publishable_grids: int8 occupancy, float32 noise)
+    train on the same cells and count every unknown cell as object (-1 in the published grid)."""
+    from gpis_grasp_ros.core.pipeline import publishable_grids
     from gpis_grasp_ros.core.sensing import segment_frames
 
     rgb, depth, intr, _, _ = _rendered_scene(4)
@@ -639,7 +639,8 @@ def test_unknown_cells_are_object_and_untrained_on_both_paths():
     assert unknown.sum() >= 10 and np.all(occ[unknown] == -1) and np.all(np.isnan(noise[unknown]))
     assert np.mean(result.occupancy[unknown & ~result.missing] < 0.5) > 0.75  # free in the blend, yet unknown
     fixed = GpisParams(optimize_hyperparameters=False, signal_variance=1e-4, length_scale=0.01)
-    a = build_gpis(result, fixed)
+    own_occ = np.where(unknown, -1, np.where(result.occupancy >= 0.5, 100, 0))
+    a = posterior_from_grids(own_occ, np.where(unknown, np.nan, result.noise_variance), result.geometry, fixed)
     b = posterior_from_grids(occ, noise, geometry, fixed)
     assert a.train_y.size == b.train_y.size == int(result.train_mask.sum())
     np.testing.assert_allclose(a.mean, b.mean, atol=1e-6)
