@@ -8,8 +8,9 @@ docs/ground-truth.md:
 1. every mask pixel gets its height above the table (its true depth; a pixel without a return takes the
    height of the nearest one with a return), and the one-pixel ring around the mask the height the surface
    reaches at the silhouette (linear extrapolation from inside: the base of a wall, the rim of a top);
-2. each pixel's four corners are lifted to the surface (mean height of the pixels sharing the corner) and
-   projected onto the table: the pixels tile the projected visible surface, whose union is the footprint;
+2. each pixel's four corners are lifted to the surface (mean height of the pixels sharing the corner, not
+   across a depth discontinuity) and projected onto the table: the pixels tile the projected visible
+   surface, whose union is the footprint (its largest connected part);
 3. its outline (rasterised finely, outer contour) is smoothed along its arc length at a few pixel footprints
    (a twiced Gaussian), which removes the mask's pixel staircase but does not shrink curved parts;
 4. the SDF is the exact signed distance to that polygon (positive outside), so its finite differences are
@@ -38,6 +39,8 @@ if TYPE_CHECKING:
 SMOOTHING_SIGMA_PIXELS = 3.0
 #: Points further below the table than this are depth errors (m).
 BELOW_TABLE_M = 0.005
+#: Smallest height step (m) taken as a depth discontinuity: three times a 1-2 mm depth noise.
+JUMP_FLOOR_M = 0.005
 
 
 @dataclass
@@ -74,10 +77,16 @@ def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.nd
     if comp.sum() < 10:
         raise ValueError('the target has fewer than 10 usable ground-truth points')
     heights = np.where(comp, heights, np.nan)
-    quads = _pixel_quads(intr, comp, _corner_heights(_extend_to_silhouette(heights, comp)), table)
+    z = _target_depth(depth, comp, table)
+    ext = _extend_to_silhouette(heights, comp)
+    quads = _pixel_quads(intr, comp, ext, table, _wall_jump(intr, z, table))
+    vs, us = np.nonzero(comp)
+    u, v = (int(round(c)) for c in target_px)
+    target_xy = quads[int(np.argmin((us - u) ** 2 + (vs - v) ** 2))].mean(axis=0)
     step = resolution / 4.0
-    sigma = SMOOTHING_SIGMA_PIXELS * _pixel_footprint(intr, depth, comp, table)
-    outline_xy = _resample_closed(_smooth_closed(_union_outline(quads, step), step, sigma), resolution / 2.0)
+    sigma = SMOOTHING_SIGMA_PIXELS * _pixel_footprint(intr, z, table)
+    outline_xy = _resample_closed(_smooth_closed(_union_outline(quads, step, target_xy), step, sigma),
+                                  resolution / 2.0)
     lo = np.floor((outline_xy.min(axis=0) - margin) / resolution) * resolution
     hi = np.ceil((outline_xy.max(axis=0) + margin) / resolution) * resolution
     w, h = (int(round(c)) for c in (hi - lo) / resolution)
@@ -163,26 +172,30 @@ def _extend_to_silhouette(heights: np.ndarray, comp: np.ndarray) -> np.ndarray:
     return out[2:-2, 2:-2]
 
 
-def _corner_heights(ext: np.ndarray) -> np.ndarray:
-    """(H + 1, W + 1) height at each pixel corner: mean of the defined heights of the four pixels sharing it."""
-    pad = np.pad(ext, 1, constant_values=np.nan)
-    stack = np.stack([pad[:-1, :-1], pad[:-1, 1:], pad[1:, :-1], pad[1:, 1:]])
-    ok = np.isfinite(stack)
-    return np.where(ok.any(axis=0), np.where(ok, stack, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1), np.nan)
-
-
-def _pixel_quads(intr: CameraIntrinsics, comp: np.ndarray, corner_h: np.ndarray, table: TableFrame) -> np.ndarray:
-    """(K, 4, 2) table (x, y) of the corners of each pixel of ``comp``: each corner's ray at its height."""
+def _pixel_quads(intr: CameraIntrinsics, comp: np.ndarray, ext: np.ndarray, table: TableFrame,
+                 jump_m: float) -> np.ndarray:
+    """(K, 4, 2) table (x, y) of the corners of each pixel of ``comp``, each corner's ray at the mean height of
+    the pixels sharing the corner (of ``ext``) that are within ``jump_m`` of the pixel's own: the surface is
+    not bridged across a depth discontinuity (a mask pixel seeing the table behind a rim)."""
     vs, us = np.nonzero(comp)
+    pad = np.pad(ext, 1, constant_values=np.nan)
+    own = ext[vs, us]
+    corners = []
+    for dv, du in ((0, 0), (0, 1), (1, 1), (1, 0)):  # corner (v + dv - 1/2, u + du - 1/2), clockwise in the image
+        around = np.stack([pad[vs + dv + a, us + du + b] for a in (0, 1) for b in (0, 1)], axis=1)
+        ok = np.isfinite(around) & (np.abs(around - own[:, None]) <= jump_m)
+        corners.append(np.where(ok, around, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1))
+    corner_h = np.stack(corners, axis=1)
     cv, cu = np.stack([vs, vs, vs + 1, vs + 1], axis=1), np.stack([us, us + 1, us + 1, us], axis=1)
     rays = np.stack([(cu - 0.5 - intr.cx) / intr.fx, (cv - 0.5 - intr.cy) / intr.fy, np.ones(cu.shape)], axis=-1)
-    t = (corner_h[cv, cu] - table.offset_m) / (rays @ table.n)
+    t = (corner_h - table.offset_m) / (rays @ table.n)
     return table.to_table(rays * t[..., None])[0]
 
 
-def _union_outline(quads: np.ndarray, step: float) -> np.ndarray:
-    """Outer boundary (N, 2) (m, counter-clockwise in the table frame) of the union of the quads, rasterised
-    with cells of ``step`` m; the contour runs through boundary cell centres, so it is moved out half a cell."""
+def _union_outline(quads: np.ndarray, step: float, target_xy: np.ndarray) -> np.ndarray:
+    """Outer boundary (N, 2) (m, counter-clockwise in the table frame) of the connected part of the quads' union
+    that holds ``target_xy`` (the largest if none does), rasterised with cells of ``step`` m (OpenCV fills the
+    cells whose centre is within half a cell of the polygon: the contour through them is unbiased)."""
     flat = quads.reshape(-1, 2)
     lo = flat.min(axis=0) - 4 * step
     w, h = (int(math.ceil(c)) + 8 for c in (flat.max(axis=0) - lo) / step)
@@ -191,7 +204,9 @@ def _union_outline(quads: np.ndarray, step: float) -> np.ndarray:
     pts = np.round(((quads - lo) / step - 0.5) * (1 << shift)).astype(np.int32)
     cv2.fillPoly(raster, list(pts), 1, lineType=cv2.LINE_8, shift=shift)
     contours, _ = cv2.findContours(raster, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    c = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
+    tx, ty = (float(c) for c in (target_xy - lo) / step - 0.5)
+    holding = [c for c in contours if cv2.pointPolygonTest(c, (tx, ty), False) >= 0]
+    c = max(holding or contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
     xy = lo + (c + 0.5) * step
     if _signed_area(xy) < 0:
         xy = xy[::-1]
@@ -222,8 +237,19 @@ def _signed_area(xy: np.ndarray) -> float:
     return float(0.5 * (xy[:, 0] * q[:, 1] - q[:, 0] * xy[:, 1]).sum())
 
 
-def _pixel_footprint(intr: CameraIntrinsics, depth: np.ndarray, comp: np.ndarray, table: TableFrame) -> float:
-    """Largest extent (m) of one pixel on the table at the target's depth: z / (f cos tilt)."""
+def _target_depth(depth: np.ndarray, comp: np.ndarray, table: TableFrame) -> float:
     z = depth[comp & np.isfinite(depth)]
-    z = float(np.median(z)) if z.size else table.offset_m
+    return float(np.median(z)) if z.size else table.offset_m
+
+
+def _pixel_footprint(intr: CameraIntrinsics, z: float, table: TableFrame) -> float:
+    """Largest extent (m) of one pixel on the table at depth ``z``: z / (f cos tilt)."""
     return z / min(intr.fx, intr.fy) / max(math.cos(math.radians(table.tilt_deg)), 0.3)
+
+
+def _wall_jump(intr: CameraIntrinsics, z: float, table: TableFrame) -> float:
+    """Largest height step (m) between neighbouring pixels on one surface: two pixels up a vertical wall,
+    2 z / (f sin tilt), at least JUMP_FLOOR_M (depth noise). A larger step is a depth discontinuity; a smaller
+    one bridged behind a rim moves the outline by under two pixel footprints."""
+    sin_tilt = max(math.sin(math.radians(table.tilt_deg)), 0.05)
+    return max(2.0 * z / min(intr.fx, intr.fy) / sin_tilt, JUMP_FLOOR_M)
