@@ -17,20 +17,11 @@ Optional **crop** (pixel box) and **downscale** factor keep bags small; the intr
 taking the nearest sample (no mixing of foreground and background depths), colour by area
 averaging.
 
-Optional **ground truth** (:func:`ground_truth_from_mask`) for evaluation: a target mask (the
-mask's connected component containing a target pixel) and a depth image of the true shape
-(e.g. the same scene with opaque copies of transparent objects). Its surface points (a mask pixel without a
-return of the true shape takes the height of the nearest one with a return) are projected
-orthographically onto the table plane (:mod:`~gpis_grasp_ros.core.table_frame`; the plane
-fitted to the capture's own depth exactly as :func:`~gpis_grasp_ros.core.sensing.segment_frames`
-fits it, so the ground truth's grid (x, y) are the segmentation grid's), rasterised at
-``resolution`` and closed; the ground truth is that footprint's signed distance (m, positive
-outside), its centre of mass and its outline, on a grid in the table frame. ``import-rgbd`` builds it from
-the *cropped, unscaled* mask and true depth (the table plane is the one fitted to the bag's scaled capture, so
-the frames agree): taking every other pixel of a mask by nearest sampling doubles its boundary's stair steps,
-and the ground truth's normals - finite differences of its SDF, which decide force closure in the simulated
-executions - would follow them (on the real flower box, halved: planned on the truth itself 10.4 of 20 in force
-closure, seeds 0-9; full resolution: 16.8).
+Optional **ground truth** (:func:`~gpis_grasp_ros.data.ground_truth.ground_truth_from_mask`, construction in
+docs/ground-truth.md) for evaluation: the target's footprint on the table plane fitted to the capture's own
+depth exactly as :func:`~gpis_grasp_ros.core.sensing.segment_frames` fits it, from a target mask and a depth
+image of the true shape. ``import-rgbd`` builds it from the *cropped, unscaled* mask and true depth (the table
+plane is the one fitted to the bag's scaled capture, so the frames agree): halving a mask doubles its stair steps.
 
 :func:`write_capture_bag` writes one frame (one frame is one frame: no repeats) with the topics
 and QoS of the simulated bags (:func:`gpis_grasp_ros.sim.scene.write_scene_bag`).
