@@ -19,20 +19,11 @@ Optional **crop** (pixel box) and **downscale** factor keep bags small; the intr
 taking the nearest sample (no mixing of foreground and background depths), colour by area
 averaging.
 
-Optional **ground truth** (:func:`ground_truth_from_mask`) for evaluation: a target mask (the
-mask's connected component containing a target pixel) and a depth image of the true shape
-(e.g. the same scene with opaque copies of transparent objects). Its surface points (a mask pixel without a
-return of the true shape takes the height of the nearest one with a return) are projected
-orthographically onto the table plane (:mod:`~gpis_grasp_ros.core.table_frame`; the plane
-fitted to the capture's own depth exactly as :func:`~gpis_grasp_ros.core.sensing.segment_frames`
-fits it, so the ground truth's grid (x, y) are the segmentation grid's), rasterised at
-``resolution`` and closed; the ground truth is that footprint's signed distance (m, positive
-outside), its centre of mass and its outline, on a grid in the table frame. ``import-rgbd`` builds it from
-the *cropped, unscaled* mask and true depth (the table plane is the one fitted to the bag's scaled capture, so
-the frames agree): taking every other pixel of a mask by nearest sampling doubles its boundary's stair steps,
-and the ground truth's normals - finite differences of its SDF, which decide force closure in the simulated
-executions - would follow them (on the real flower box, halved: planned on the truth itself 10.4 of 20 in force
-closure, seeds 0-9; full resolution: 16.8).
+Optional **ground truth** (:func:`~gpis_grasp_ros.data.ground_truth.ground_truth_from_mask`, construction in
+docs/ground-truth.md) for evaluation: the target's footprint on the table plane fitted to the capture's own
+depth exactly as :func:`~gpis_grasp_ros.core.sensing.segment_frames` fits it, from a target mask and a depth
+image of the true shape. ``import-rgbd`` builds it from the *cropped, unscaled* mask and true depth (the table
+plane is the one fitted to the bag's scaled capture, so the frames agree): halving a mask doubles its stair steps.
 
 :func:`write_capture_bag` writes one frame (one frame is one frame: no repeats) with the topics
 and QoS of the simulated bags (:func:`gpis_grasp_ros.sim.scene.write_scene_bag`).
@@ -52,12 +43,11 @@ import cv2
 import numpy as np
 import yaml
 
-from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.noise_model import SensorModel
-from gpis_grasp_ros.core.sdf import signed_distance
-from gpis_grasp_ros.core.sensing import CameraIntrinsics, nearest_pixel
+from gpis_grasp_ros.core.sensing import CameraIntrinsics
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 from gpis_grasp_ros.data import bagio, messages
+from gpis_grasp_ros.data.ground_truth import GroundTruth, ground_truth_from_mask  # noqa: F401 (this module's API)
 from gpis_grasp_ros.data.topics import TOPIC_TYPES, TOPICS
 
 FRAME_ID = 'camera_color_optical_frame'
@@ -71,18 +61,6 @@ class Capture:
     rgb: np.ndarray
     depth: np.ndarray
     intrinsics: CameraIntrinsics
-
-
-@dataclass
-class GroundTruth:
-    """Target shape in the table frame: SDF (m, positive outside) and occupancy on ``geometry``."""
-
-    sdf: np.ndarray
-    occupancy: np.ndarray  # int8 0 / 100
-    geometry: GridGeometry
-    center_of_mass: np.ndarray  # (3,) camera frame, on the table plane (m)
-    outline: np.ndarray  # (K, 3) camera frame, on the table plane (m)
-    table: TableFrame
 
 
 # ------------------------------------------------------------------------------------------ reading
@@ -288,87 +266,6 @@ def capture_table(capture: Capture, sensor: SensorModel) -> TableFrame:
     points = capture.intrinsics.rays() * capture.depth[..., None]
     valid = np.isfinite(capture.depth)
     return fit_table_plane(points[valid], sensor)
-
-
-def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.ndarray, target_px: tuple[float, float],
-                           table: TableFrame, resolution: float = 0.001, margin: float = 0.03,
-                           frame_id: str = FRAME_ID) -> GroundTruth:
-    """Ground truth of the mask component containing ``target_px`` (module docstring).
-
-    Args:
-        capture: the capture (for the intrinsics).
-        mask: (H, W) bool or 0/255 mask of the objects (all of them).
-        true_depth: (H, W) m depth of the true shape (NaN where unknown: the pixel's ray meets the table).
-        target_px: (u, v) pixel on the target.
-        table: table plane (camera frame) whose frame the ground truth uses.
-        resolution, margin: ground-truth grid cell (m) and free margin around the shape (m).
-    """
-    m = np.asarray(mask) > 0 if np.asarray(mask).dtype != bool else np.asarray(mask)
-    _, labels = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
-    u, v = (int(round(c)) for c in target_px)
-    if not (0 <= v < labels.shape[0] and 0 <= u < labels.shape[1]) or labels[v, u] == 0:
-        raise ValueError(f'target pixel ({u}, {v}) is not on the mask')
-    comp = labels == labels[v, u]
-    pts = _mask_surface_points(capture.intrinsics.rays(), comp, np.asarray(true_depth, dtype=np.float64), table)
-    keep = np.isfinite(pts).all(axis=1)
-    xy, height = table.to_table(pts[keep])
-    xy = xy[height > -0.005]  # points below the table are depth errors
-    if xy.shape[0] < 10:
-        raise ValueError('the target has fewer than 10 usable ground-truth points')
-    lo = np.floor((xy.min(axis=0) - margin) / resolution) * resolution
-    hi = np.ceil((xy.max(axis=0) + margin) / resolution) * resolution
-    w, h = (int(round(c)) for c in (hi - lo) / resolution)
-    geom = table.grid(float(lo[0]), float(lo[1]), resolution, w, h, frame_id)
-    occ = np.zeros((h, w), np.uint8)
-    idx = np.floor((xy - lo) / resolution).astype(np.int64)
-    occ[np.clip(idx[:, 1], 0, h - 1), np.clip(idx[:, 0], 0, w - 1)] = 1
-    # pixels are sparser than the 1 mm grid: close the footprint, then fill its holes
-    size = max(3, 2 * int(math.ceil(_pixel_footprint(capture, table) / resolution)) + 1)
-    occ = cv2.morphologyEx(occ, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
-    contours, _ = cv2.findContours(occ, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    biggest = max(contours, key=cv2.contourArea)
-    occ = np.zeros_like(occ)
-    cv2.drawContours(occ, [biggest], -1, 1, thickness=cv2.FILLED)
-    inside = occ.astype(bool)
-    sdf = signed_distance(inside, resolution)
-    centres = geom.cell_centers()
-    com_xy = centres[inside].mean(axis=0)
-    outline_xy = geom.to_metric(biggest.reshape(-1, 2).astype(np.float64))
-    return GroundTruth(sdf=sdf.astype(np.float32), occupancy=np.where(inside, 100, 0).astype(np.int8), geometry=geom,
-                       center_of_mass=geom.to_sensor(com_xy), outline=geom.to_sensor(outline_xy), table=table)
-
-
-def _mask_surface_points(rays: np.ndarray, comp: np.ndarray, true_depth: np.ndarray, table: TableFrame) -> np.ndarray:
-    """Camera-frame points (m) of the mask component ``comp``'s pixels on the true surface.
-
-    A pixel with a return of the true shape is its ray at that depth. A pixel *without* one (a grazing or
-    dark part of the opaque twin) still sees the object - the mask says so - at an unknown depth: it takes
-    the height above the table (along the normal) of the nearest pixel of the component with a return and is
-    placed where its ray reaches that height. Putting it where its ray meets the table would put it behind the
-    object by up to H tan(tilt): on the real lying bottle (6 cm high, 52 deg tilt) the far rim's holes landed
-    7-10 cm behind it and the filled footprint grew from 5 to 12 cm wide.
-
-    Raises:
-        ValueError: no pixel of the component has a return of the true shape."""
-    z = np.where(np.isfinite(true_depth) & (true_depth > 0), true_depth, np.nan)
-    valid = comp & np.isfinite(z)
-    if not valid.any():
-        raise ValueError('the target has no return of the true shape (--gt-depth) on its mask')
-    pts = rays * np.nan_to_num(z)[..., None]
-    heights = np.where(valid, pts @ table.n + table.offset_m, 0.0)
-    vs, us = np.nonzero(comp & ~valid)
-    near = nearest_pixel(valid)[1][vs, us]
-    h = heights[near[:, 0], near[:, 1]]
-    ray = rays[vs, us]
-    with np.errstate(invalid='ignore', divide='ignore'):
-        t = (h - table.offset_m) / (ray @ table.n)
-    pts[vs, us] = np.where((t > 0)[:, None], ray * t[:, None], np.nan)
-    return pts[comp]
-
-
-def _pixel_footprint(capture: Capture, table: TableFrame) -> float:
-    z = float(np.nanmedian(capture.depth))
-    return z / min(capture.intrinsics.fx, capture.intrinsics.fy) / max(math.cos(math.radians(table.tilt_deg)), 0.3)
 
 
 # ------------------------------------------------------------------------------------------ writing

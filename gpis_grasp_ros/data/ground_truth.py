@@ -1,0 +1,255 @@
+"""Ground truth of a real capture: a target's footprint on the table and its exact signed distance.
+
+The footprint is the object's orthographic shadow on the table plane, the part of the table a parallel-jaw
+grasp from above closes on. From a target mask (the mask component containing a target pixel) and the depth
+image of the true shape (e.g. the scene with opaque copies of transparent objects), construction in
+docs/ground-truth.md:
+
+1. every mask pixel gets its height above the table (its true depth; a pixel without a return takes the
+   height of the nearest one with a return), and the one-pixel ring around the mask the height the surface
+   reaches at the silhouette (linear extrapolation from inside: the base of a wall, the rim of a top);
+2. each pixel's four corners are lifted to the surface (mean height of the pixels sharing the corner, not
+   across a depth discontinuity) and projected onto the table: the pixels tile the projected visible
+   surface, whose union is the footprint (its largest connected part);
+3. its outline (rasterised finely, outer contour) is smoothed along its arc length at a few pixel footprints
+   (a twiced Gaussian), which removes the mask's pixel staircase but does not shrink curved parts;
+4. the SDF is the exact signed distance to that polygon (positive outside), so its finite differences are
+   the outline's normals and not a raster's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.sensing import CameraIntrinsics, nearest_pixel
+from gpis_grasp_ros.core.table_frame import TableFrame
+
+if TYPE_CHECKING:
+    from gpis_grasp_ros.data.rgbd_import import Capture
+
+#: Outline smoothing scale sigma, in pixel footprints (docs/ground-truth.md: a one-pixel step of the mask's
+#: staircase smoothed over sigma tilts the outline by at most atan(1 / (sqrt(2 pi) 3)) = 7.6 deg).
+SMOOTHING_SIGMA_PIXELS = 3.0
+#: Points further below the table than this are depth errors (m).
+BELOW_TABLE_M = 0.005
+#: Smallest height step (m) taken as a depth discontinuity: three times a 1-2 mm depth noise.
+JUMP_FLOOR_M = 0.005
+
+
+@dataclass
+class GroundTruth:
+    """Target shape in the table frame: SDF (m, positive outside) and occupancy on ``geometry``."""
+
+    sdf: np.ndarray
+    occupancy: np.ndarray  # int8 0 / 100
+    geometry: GridGeometry
+    center_of_mass: np.ndarray  # (3,) camera frame, on the table plane (m)
+    outline: np.ndarray  # (K, 3) camera frame, on the table plane (m)
+    table: TableFrame
+
+
+def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.ndarray, target_px: tuple[float, float],
+                           table: TableFrame, resolution: float = 0.001, margin: float = 0.03,
+                           frame_id: str = 'camera_color_optical_frame') -> GroundTruth:
+    """Ground truth of the mask component containing ``target_px`` (module docstring).
+
+    Args:
+        capture: the capture (for the intrinsics).
+        mask: (H, W) bool or 0/255 mask of the objects (all of them).
+        true_depth: (H, W) m depth of the true shape (NaN where unknown: the pixel's ray meets the table).
+        target_px: (u, v) pixel on the target.
+        table: table plane (camera frame) whose frame the ground truth uses.
+        resolution, margin: ground-truth grid cell (m) and free margin around the shape (m).
+        frame_id: frame of the grid (rgbd_import.FRAME_ID by default).
+    """
+    comp = _component(mask, target_px)
+    intr = capture.intrinsics
+    depth = np.asarray(true_depth, dtype=np.float64)
+    heights = _surface_heights(intr.rays(), comp, depth, table)
+    comp &= heights > -BELOW_TABLE_M  # points below the table are depth errors
+    if comp.sum() < 10:
+        raise ValueError('the target has fewer than 10 usable ground-truth points')
+    heights = np.where(comp, heights, np.nan)
+    z = _target_depth(depth, comp, table)
+    ext = _extend_to_silhouette(heights, comp)
+    quads = _pixel_quads(intr, comp, ext, table, _wall_jump(intr, z, table))
+    vs, us = np.nonzero(comp)
+    u, v = (int(round(c)) for c in target_px)
+    target_xy = quads[int(np.argmin((us - u) ** 2 + (vs - v) ** 2))].mean(axis=0)
+    step = resolution / 4.0
+    sigma = SMOOTHING_SIGMA_PIXELS * _pixel_footprint(intr, z, table)
+    outline_xy = _resample_closed(_smooth_closed(_union_outline(quads, step, target_xy), step, sigma),
+                                  resolution / 2.0)
+    lo = np.floor((outline_xy.min(axis=0) - margin) / resolution) * resolution
+    hi = np.ceil((outline_xy.max(axis=0) + margin) / resolution) * resolution
+    w, h = (int(round(c)) for c in (hi - lo) / resolution)
+    geom = table.grid(float(lo[0]), float(lo[1]), resolution, w, h, frame_id)
+    sdf = polygon_sdf(outline_xy, geom.cell_centers())
+    inside = sdf < 0
+    return GroundTruth(sdf=sdf.astype(np.float32), occupancy=np.where(inside, 100, 0).astype(np.int8), geometry=geom,
+                       center_of_mass=geom.to_sensor(polygon_centroid(outline_xy)),
+                       outline=geom.to_sensor(outline_xy), table=table)
+
+
+def polygon_sdf(polygon: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Exact signed distance (m, positive outside) of ``points`` (..., 2) to the closed ``polygon`` (K, 2)."""
+    poly = np.asarray(polygon, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    origin = poly.min(axis=0)  # float32 contour for OpenCV: keep the coordinates small
+    contour = ((poly - origin) * 1e3).astype(np.float32).reshape(-1, 1, 2)
+    flat = (pts.reshape(-1, 2) - origin) * 1e3
+    out = np.fromiter((cv2.pointPolygonTest(contour, (float(x), float(y)), True) for x, y in flat),
+                      dtype=np.float64, count=flat.shape[0])
+    return (-out * 1e-3).reshape(pts.shape[:-1])
+
+
+def polygon_centroid(polygon: np.ndarray) -> np.ndarray:
+    """Area centroid (2,) of a closed simple polygon (K, 2)."""
+    p = np.asarray(polygon, dtype=np.float64)
+    q = np.roll(p, -1, axis=0)
+    cross = p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]
+    return ((p + q) * cross[:, None]).sum(axis=0) / (3.0 * cross.sum())
+
+
+def _component(mask: np.ndarray, target_px: tuple[float, float]) -> np.ndarray:
+    m = np.asarray(mask) > 0 if np.asarray(mask).dtype != bool else np.asarray(mask)
+    _, labels = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
+    u, v = (int(round(c)) for c in target_px)
+    if not (0 <= v < labels.shape[0] and 0 <= u < labels.shape[1]) or labels[v, u] == 0:
+        raise ValueError(f'target pixel ({u}, {v}) is not on the mask')
+    return labels == labels[v, u]
+
+
+def _surface_heights(rays: np.ndarray, comp: np.ndarray, true_depth: np.ndarray, table: TableFrame) -> np.ndarray:
+    """Height (m) above the table of the true surface at each pixel of the mask component ``comp`` (NaN elsewhere).
+
+    A pixel with a return of the true shape is its ray at that depth. A pixel *without* one (a grazing or
+    dark part of the opaque twin) still sees the object - the mask says so - at an unknown depth: it takes
+    the height of the nearest pixel of the component with a return. Putting it where its ray meets the table
+    would put it behind the object by up to H tan(tilt) (on the real lying bottle, 7-10 cm).
+
+    Raises:
+        ValueError: no pixel of the component has a return of the true shape."""
+    z = np.where(np.isfinite(true_depth) & (true_depth > 0), true_depth, np.nan)
+    valid = comp & np.isfinite(z)
+    if not valid.any():
+        raise ValueError('the target has no return of the true shape (--gt-depth) on its mask')
+    heights = np.where(valid, (rays * np.nan_to_num(z)[..., None]) @ table.n + table.offset_m, np.nan)
+    vs, us = np.nonzero(comp & ~valid)
+    near = nearest_pixel(valid)[1][vs, us]
+    heights[vs, us] = heights[near[:, 0], near[:, 1]]
+    return heights
+
+
+def _extend_to_silhouette(heights: np.ndarray, comp: np.ndarray) -> np.ndarray:
+    """``heights`` on ``comp`` plus the 4-connected ring around it, each ring pixel the mean over its neighbours
+    in ``comp`` of the height extrapolated linearly one pixel outwards (2 h(q) - h(q'), q' the next pixel
+    inwards; h(q) if there is none), not below the table. A corner between the mask's last pixel and the ring
+    then sits where the surface meets the silhouette: the base of a wall (its heights fall towards the table),
+    the rim of a flat top (constant)."""
+    pad = np.pad(heights, 2, constant_values=np.nan)
+    inside = np.pad(comp, 2, constant_values=False)
+    total = np.zeros(pad.shape)
+    count = np.zeros(pad.shape)
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        q = np.roll(pad, (-dy, -dx), axis=(0, 1))  # the neighbour at (+dy, +dx)
+        q2 = np.roll(pad, (-2 * dy, -2 * dx), axis=(0, 1))
+        q_in = np.roll(inside, (-dy, -dx), axis=(0, 1))
+        q2_in = np.roll(inside, (-2 * dy, -2 * dx), axis=(0, 1))
+        est = np.where(q2_in, 2.0 * q - q2, q)
+        use = ~inside & q_in
+        total[use] += est[use]
+        count[use] += 1
+    ring = count > 0
+    out = np.where(inside, pad, np.where(ring, total / np.maximum(count, 1), np.nan))
+    return out[2:-2, 2:-2]
+
+
+def _pixel_quads(intr: CameraIntrinsics, comp: np.ndarray, ext: np.ndarray, table: TableFrame,
+                 jump_m: float) -> np.ndarray:
+    """(K, 4, 2) table (x, y) of the corners of each pixel of ``comp``, each corner's ray at the mean height of
+    the pixels sharing the corner (of ``ext``) that are within ``jump_m`` of the pixel's own: the surface is
+    not bridged across a depth discontinuity (a mask pixel seeing the table behind a rim)."""
+    vs, us = np.nonzero(comp)
+    pad = np.pad(ext, 1, constant_values=np.nan)
+    own = ext[vs, us]
+    corners = []
+    for dv, du in ((0, 0), (0, 1), (1, 1), (1, 0)):  # corner (v + dv - 1/2, u + du - 1/2), clockwise in the image
+        around = np.stack([pad[vs + dv + a, us + du + b] for a in (0, 1) for b in (0, 1)], axis=1)
+        ok = np.isfinite(around) & (np.abs(around - own[:, None]) <= jump_m)
+        corners.append(np.where(ok, around, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1))
+    corner_h = np.stack(corners, axis=1)
+    cv, cu = np.stack([vs, vs, vs + 1, vs + 1], axis=1), np.stack([us, us + 1, us + 1, us], axis=1)
+    rays = np.stack([(cu - 0.5 - intr.cx) / intr.fx, (cv - 0.5 - intr.cy) / intr.fy, np.ones(cu.shape)], axis=-1)
+    t = (corner_h - table.offset_m) / (rays @ table.n)
+    return table.to_table(rays * t[..., None])[0]
+
+
+def _union_outline(quads: np.ndarray, step: float, target_xy: np.ndarray) -> np.ndarray:
+    """Outer boundary (N, 2) (m, counter-clockwise in the table frame) of the connected part of the quads' union
+    that holds ``target_xy`` (the largest if none does), rasterised with cells of ``step`` m (OpenCV fills the
+    cells whose centre is within half a cell of the polygon: the contour through them is unbiased)."""
+    flat = quads.reshape(-1, 2)
+    lo = flat.min(axis=0) - 4 * step
+    w, h = (int(math.ceil(c)) + 8 for c in (flat.max(axis=0) - lo) / step)
+    raster = np.zeros((h, w), np.uint8)
+    shift = 4
+    pts = np.round(((quads - lo) / step - 0.5) * (1 << shift)).astype(np.int32)
+    cv2.fillPoly(raster, list(pts), 1, lineType=cv2.LINE_8, shift=shift)
+    contours, _ = cv2.findContours(raster, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    tx, ty = (float(c) for c in (target_xy - lo) / step - 0.5)
+    holding = [c for c in contours if cv2.pointPolygonTest(c, (tx, ty), False) >= 0]
+    c = max(holding or contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
+    xy = lo + (c + 0.5) * step
+    if _signed_area(xy) < 0:
+        xy = xy[::-1]
+    return _resample_closed(xy, step)
+
+
+def _smooth_closed(xy: np.ndarray, step: float, sigma_m: float) -> np.ndarray:
+    """Closed curve resampled every ``step`` m and smoothed along its arc length with the twiced Gaussian
+    2 G - G * G (scale ``sigma_m``): a Gaussian alone pulls a curve of radius R in by sigma^2 / (2 R), the
+    twiced kernel cancels that to second order and still removes the pixel staircase."""
+    p = _resample_closed(xy, step)
+    s = min(sigma_m / step, p.shape[0] / 8.0)
+    g = gaussian_filter1d(p, s, axis=0, mode='wrap')
+    return 2.0 * g - gaussian_filter1d(g, s, axis=0, mode='wrap')
+
+
+def _resample_closed(xy: np.ndarray, step: float) -> np.ndarray:
+    """Closed polyline (N, 2) → points equally spaced (about ``step`` m) along its arc length."""
+    closed = np.vstack([xy, xy[:1]])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    n = max(int(round(s[-1] / step)), 8)
+    t = np.arange(n) * (s[-1] / n)
+    return np.stack([np.interp(t, s, closed[:, k]) for k in range(2)], axis=1)
+
+
+def _signed_area(xy: np.ndarray) -> float:
+    q = np.roll(xy, -1, axis=0)
+    return float(0.5 * (xy[:, 0] * q[:, 1] - q[:, 0] * xy[:, 1]).sum())
+
+
+def _target_depth(depth: np.ndarray, comp: np.ndarray, table: TableFrame) -> float:
+    z = depth[comp & np.isfinite(depth)]
+    return float(np.median(z)) if z.size else table.offset_m
+
+
+def _pixel_footprint(intr: CameraIntrinsics, z: float, table: TableFrame) -> float:
+    """Largest extent (m) of one pixel on the table at depth ``z``: z / (f cos tilt)."""
+    return z / min(intr.fx, intr.fy) / max(math.cos(math.radians(table.tilt_deg)), 0.3)
+
+
+def _wall_jump(intr: CameraIntrinsics, z: float, table: TableFrame) -> float:
+    """Largest height step (m) between neighbouring pixels on one surface: two pixels up a vertical wall,
+    2 z / (f sin tilt), at least JUMP_FLOOR_M (depth noise). A larger step is a depth discontinuity; a smaller
+    one bridged behind a rim moves the outline by under two pixel footprints."""
+    sin_tilt = max(math.sin(math.radians(table.tilt_deg)), 0.05)
+    return max(2.0 * z / min(intr.fx, intr.fy) / sin_tilt, JUMP_FLOOR_M)
