@@ -1,6 +1,6 @@
 """``gpis-grasp evaluate``: dataset-scale evaluation as independent tasks on three executors (issue 13).
 
-    gpis-grasp evaluate --dataset DIR --out DIR [--methods gp-g,gp-m,gp-p] [--lambda 2] [--alpha 0.5]
+    gpis-grasp evaluate --dataset DIR --out DIR [--methods gp-gpis-opt,gp-m,gp-p] [--lambda 2] [--alpha 0.5]
                         [--seeds 1] [--executor serial|process|dask] [--workers N] [--scheduler local|tcp://HOST:PORT]
     gpis-grasp evaluate --dataset DIR --out DIR --throughput 1,2 [--executors serial,process,dask]
 
@@ -11,7 +11,7 @@ its task: it renders the object's scene in memory (:func:`~gpis_grasp_ros.sim.da
 a user's bag is read instead), segments it and fits the GPIS exactly as the nodes do
 (:func:`~gpis_grasp_ros.data.bags.posterior_from_scene`), plans with
 :func:`~gpis_grasp_ros.core.planners.plan` and executes the grasp ``trials`` times on the TRUE
-shape with :func:`~gpis_grasp_ros.core.planners.execute_grasp_trials` (σ_g = 0.5 planning cell,
+shape with :func:`~gpis_grasp_ros.sim.execution.execute_grasp_trials` (σ_g = 0.5 planning cell,
 true centre of mass). A task carries its manifest entry, so a remote worker needs the package but no
 files (except for user-bag entries). The GPIS of an object is cached per worker process
 (:func:`object_model`, LRU), so consecutive tasks of one object fit it once per worker.
@@ -133,9 +133,11 @@ def make_tasks(entries: Sequence[dict[str, Any]], methods: Sequence[str], seeds:
                lambdas: Sequence[float | None] = (None,), alphas: Sequence[float | None] = (None,),
                settings: EvalSettings = EvalSettings()) -> list[Task]:
     """All combinations, object-major (consecutive tasks share an object and its cached GPIS)."""
-    from gpis_grasp_ros.core.planners import canonical_method
+    from gpis_grasp_ros.core.planners import METHODS
 
-    methods = [canonical_method(m) for m in methods]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown grasp planner(s) {', '.join(unknown)}; valid names: {', '.join(METHODS)}")
     return [Task(e, m, int(s), lam, a, settings) for e in entries for s in seeds for m in methods
             for lam in lambdas for a in alphas]
 
@@ -224,7 +226,8 @@ def to_truth_grid(xy: np.ndarray, planning: Any, truth: Any) -> np.ndarray:
 
 def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
     """Run one task (pure: the same task gives the same row apart from :data:`TIMING_COLUMNS`)."""
-    from gpis_grasp_ros.core.planners import execute_grasp_trials, plan
+    from gpis_grasp_ros.core.planners import plan
+    from gpis_grasp_ros.sim.execution import execute_grasp_trials
 
     t_task, cpu_task = time.perf_counter(), time.process_time()
     if attempt <= int(task.fail_first_attempts):

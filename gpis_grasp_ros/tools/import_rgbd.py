@@ -26,13 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
-from gpis_grasp_ros.core.contacts import GripperParams, bilinear
+from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.noise_model import SENSOR_MODELS, SensorModel
 from gpis_grasp_ros.core.pipeline import posterior_from_grids
-from gpis_grasp_ros.core.planners import METHODS, PlannerParams, execute_grasp_trials, plan
+from gpis_grasp_ros.core.planners import METHODS, PlannerParams, plan
+from gpis_grasp_ros.core.sdf_bank import bilinear
 from gpis_grasp_ros.core.sensing import SensingParams, SensingResult
 from gpis_grasp_ros.data import rgbd_import as ri
 from gpis_grasp_ros.data.bags import load_bag, posterior_from_scene
+from gpis_grasp_ros.sim.execution import execute_grasp_trials
 
 
 @dataclass

@@ -21,14 +21,17 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from gpis_grasp_ros.core.blur import gpis_blur
-from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, bilinear, find_contacts
+from gpis_grasp_ros.core.contacts import find_contacts
 from gpis_grasp_ros.core.gpis import GpisPosterior, center_of_mass
 from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
-from gpis_grasp_ros.core.planners import PlannerParams, execute_grasp_trials, plan
+from gpis_grasp_ros.core.planners import PlannerParams, plan
 from gpis_grasp_ros.core.quality import ferrari_canny_l1, torque_scale
+from gpis_grasp_ros.core.sdf_bank import SdfBank, bilinear
 from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 from gpis_grasp_ros.data.bags import load_bag
+from gpis_grasp_ros.sim.execution import execute_grasp_trials
 from gpis_grasp_ros.tools.benchmark.calibration import calibrate_object
 from gpis_grasp_ros.tools.seeds import derive_seed
 
