@@ -148,7 +148,6 @@ cell's SDF value, the sum of these documented terms:
   correction) and **capped in extent**: it reaches only cells within ``propagation_radius_m`` of
   U_c (far cells' SDF is decided by certain surface nearer to them; without the cap a large
   missing region raised far cells to (90 mm)^2).
-* discretisation (off by default, ``discretisation_weight``): resolution^2 / 12.
 
 Unknown cells (``exclude_uncertain``, default on; issue 11's calibration study). The paper
 builds the GPIS so that it is most uncertain where the measurements are missing or the RGB and depth
@@ -340,7 +339,6 @@ class SensingParams:
     alternative_weight: float = 0.25  # weight of (f_obj - f_free)^2 in the SDF noise
     error_correlation_length_m: float = 0.01  # extent over which propagated SDF errors are shared (m)
     propagation_radius_m: float = 0.03  # propagated SDF variance reaches this far from its cause (m)
-    discretisation_weight: float = 0.0  # weight of resolution^2 / 12 in the SDF noise (0 = off)
     exclude_uncertain: bool = True  # uncertain cells: not trained, object in the SDF (False: trained, old model)
 
     def __post_init__(self) -> None:
@@ -1995,7 +1993,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         uncertain |= foreign
         trained_clear = behind | (body & params.train_clear_body)  # a clear body's prism, trained
         unknown |= foreign | (_extended_regions(disagree) & ~trained_clear)
-    noise = (depth_var + params.discretisation_weight * res ** 2 / 12.0
+    noise = (depth_var
              + params.disagreement_variance_m2 * disagreement
              + params.disagreement_variance_m2 * np.where(missing, 0.0, miss_c))
     occ_bin = occupancy >= 0.5
