@@ -73,7 +73,7 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     """Contacts of jaws closing from ``jaw1`` and ``jaw2`` (m, shape ``(..., 2)``) on SDFs of ``bank``.
 
     ``index`` (int array broadcastable to the leading shape, or None for grid 0) selects which
-    grid of the bank each trial closes on. See the module docstring for the algorithm.
+    grid of the bank each trial closes on. The contact model is described in docs/planning.md.
     ``compiled=False`` finds the exact crossings with the vectorised numpy implementation (float32,
     every cell of every line) instead of the compiled kernel: the independent reference the tests
     compare the kernel against; both implement the same model.

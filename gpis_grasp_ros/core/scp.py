@@ -60,8 +60,8 @@ convex optimization" (RSS 2013), Algorithm 1:
 for the active restarts only, so a failed subproblem concerns only its restart. With OSQP each
 restart has its own small problem, set up once (on its first iteration); each iteration only
 updates its vectors and matrix values (``OSQP.update``, warm-started from the previous solution)
-and solves it. (An earlier version put all restarts in one block-diagonal OSQP problem: it runs
-as many ADMM iterations as its hardest block needs and fails for all restarts at once.) The
+and solves it (a block-diagonal problem of all restarts would run as many ADMM iterations as its
+hardest block needs and fail for all restarts at once). The
 objective/constraint function is called on a batch of points (all candidates, or all
 finite-difference points of all restarts, at once), so it can be vectorised by the caller.
 

@@ -83,7 +83,7 @@ def select_by_monte_carlo(ctx: PlanningContext, jaw1: np.ndarray, jaw2: np.ndarr
                           tiebreak: np.ndarray, tracker: Tracker | None = None) -> tuple[int, float]:
     """Index of the candidate with the highest Monte-Carlo P_F, and that P̂_F (full sample set).
 
-    Successive halving when ``gp_p_adaptive`` (see the module docstring), else brute force.
+    Successive halving when ``gp_p_adaptive`` (see docs/planning.md), else brute force.
     ``tracker`` (internal) gets one progress step per round and a stop check per sample chunk.
     """
     tracker = Tracker(None) if tracker is None else tracker

@@ -17,7 +17,7 @@ class MeanGraspObjective:
     ``x = (col1, row1, col2, row2)`` (cells). Returns ``F = −P̃_F + λ(σ²(c1) + σ²(c2))`` (σ² in
     cells², c on the mean shape for the unperturbed grasp) and constraints ``G <= 0``:
     opening (cells), clearance of jaw 1 and 2 (cells), and with ``antipodal`` the three
-    constraints of eq. 5 (see the module docstring).
+    constraints of eq. 5 (see docs/planning.md).
     """
 
     def __init__(self, ctx: PlanningContext, eps: np.ndarray, penalty: float, antipodal: bool) -> None:
@@ -58,7 +58,7 @@ class MeanGraspObjective:
         cons = [(width - ctx.gripper.max_opening) / res, -con.clearance1[:, 0] / res, -con.clearance2[:, 0] / res]
         if self.antipodal:
             n1, n2 = con.n1[:, 0], con.n2[:, 0]
-            # Eq. 5 on the contact line v = (c1 − c2)/‖c1 − c2‖ (see the module docstring).
+            # Eq. 5 on the contact line v = (c1 − c2)/‖c1 − c2‖ (see docs/planning.md).
             line = con.c1[:, 0] - con.c2[:, 0]
             dist = np.hypot(line[:, 0], line[:, 1])
             has_line = con.valid[:, 0] & (dist > 1e-9 * res)

@@ -20,7 +20,7 @@ class PlannerParams:
     uncertainty_penalty: float = 2.0  # λ, per cell² of SDF variance (eq. 4)
     antipodal_alpha: float = 0.5  # α of eq. 5
     antipodal_beta: float | None = None  # β of eq. 5; None -> cos(arctan γ)
-    n_perturbations: int = 32  # K_p common-random-number perturbations for P̃_F (see the module docstring)
+    n_perturbations: int = 32  # K_p common-random-number perturbations for P̃_F (see docs/planning.md)
     smoothing_scale: float = 0.02  # Q_F scale of the sigmoid replacing 1[Q_F > 0] in P̃_F
     fd_step_cells: float = 0.2  # finite-difference step of the SCP, cells
     trust_radius_cells: float = 1.0  # initial SCP trust box half-width, cells
