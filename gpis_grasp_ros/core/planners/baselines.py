@@ -25,7 +25,7 @@ def plan_gp_d(ctx, rngs, seed, t0, tracker) -> GraspResult:
 def plan_gp_u(ctx, rngs, seed, t0, tracker) -> GraspResult:
     """GP-U: GP-D plus the uncertainty penalty λ (eq. 4), N_g initial grasps."""
     return optimise(ctx, 'gp-u', ctx.params.n_initial_grasps, ctx.params.uncertainty_penalty, False, rngs, t0,
-                     seed, tracker=tracker)
+                    seed, tracker=tracker)
 
 
 @stoppable('gp-d-single')
@@ -59,9 +59,9 @@ def plan_gp_m(ctx, rngs, seed, t0, tracker) -> GraspResult:
     best = int(np.argmax(q))
     if not np.isfinite(q[best]):
         return empty_result('gp-m', 'no heuristic candidate is valid on the mean shape', t0, seed,
-                             n_candidates=j1.shape[0])
+                            n_candidates=j1.shape[0])
     return finish(ctx, 'gp-m', j1[best], j2[best], float(q[best]), t0, rngs, seed, tracker=tracker,
-                   n_candidates=j1.shape[0])
+                  n_candidates=j1.shape[0])
 
 
 @stoppable('gp-p')
@@ -76,7 +76,6 @@ def plan_gp_p(ctx, rngs, seed, t0, tracker) -> GraspResult:
     tiebreak = ctx.mean_quality(j1, j2)
     best, p_hat = select_by_monte_carlo(ctx, j1, j2, samples, tiebreak, tracker=tracker)
     return finish(ctx, 'gp-p', j1[best], j2[best], p_hat, t0, rngs, seed, tracker=tracker, n_candidates=j1.shape[0])
-
 
 
 def select_by_monte_carlo(ctx: PlanningContext, jaw1: np.ndarray, jaw2: np.ndarray, samples: ShapeSamples,

@@ -58,10 +58,9 @@ def streams(seed: int | None) -> dict[str, np.random.Generator]:
     return {k: np.random.default_rng(c) for k, c in zip(names, children, strict=True)}
 
 
-
 def finish(ctx: PlanningContext, method: str, jaw1: np.ndarray, jaw2: np.ndarray, objective: float,
-            t_start: float, rngs: dict[str, np.random.Generator], seed: int | None, message: str = '',
-            tracker: Tracker | None = None, **kw) -> GraspResult:
+           t_start: float, rngs: dict[str, np.random.Generator], seed: int | None, message: str = '',
+           tracker: Tracker | None = None, **kw) -> GraspResult:
     """Fill a GraspResult: geometry of the grasp, Q_F on the mean, evaluation P_F."""
     planning_time = time.perf_counter() - t_start
     planning_cpu_time = float('nan') if tracker is None else time.process_time() - tracker.cpu_start
@@ -91,7 +90,6 @@ def finish(ctx: PlanningContext, method: str, jaw1: np.ndarray, jaw2: np.ndarray
 def evaluation_samples(ctx: PlanningContext, rng: np.random.Generator) -> ShapeSamples:
     """The S shape samples (and perturbation draws) on which every method's final P_F is estimated."""
     return draw_shape_samples(ctx.posterior, ctx.params.n_shape_samples, rng, rho=ctx.rho)
-
 
 
 def _prepare(posterior: GpisPosterior, params: PlannerParams | None, seed: int | None):

@@ -33,8 +33,8 @@ def _scp_settings(params: PlannerParams) -> ScpSettings:
 
 
 def optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, antipodal: bool,
-              rngs: dict[str, np.random.Generator], t_start: float, seed: int | None,
-              rerank: bool = False, tracker: Tracker | None = None) -> GraspResult:
+             rngs: dict[str, np.random.Generator], t_start: float, seed: int | None,
+             rerank: bool = False, tracker: Tracker | None = None) -> GraspResult:
     """Shared body of GP-D, GP-U, GP-GPIS-OPT (and its re-ranked variant)."""
     params = ctx.params
     tracker = Tracker(None) if tracker is None else tracker
@@ -94,8 +94,8 @@ def optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, a
         note = f'chosen restart {restarts[best].reason}: {restarts[best].qp_failures} QP subproblem(s) failed'
         message = f'{message}; {note}' if message else note
     return finish(ctx, method, o1[best], o2[best], chosen_value, t_start, rngs, seed, message, tracker=tracker,
-                   iterations=int(res.iterations.sum()), converged=bool(res.converged[best]),
-                   feasible=bool(feasible[best]), n_candidates=res.x.shape[0], restarts=restarts)
+                  iterations=int(res.iterations.sum()), converged=bool(res.converged[best]),
+                  feasible=bool(feasible[best]), n_candidates=res.x.shape[0], restarts=restarts)
 
 
 def _chunked_details(objective: MeanGraspObjective, x: np.ndarray, tracker: Tracker) -> dict[str, np.ndarray]:
@@ -136,17 +136,16 @@ class _ScpMonitor:
         tr.check()
 
 
-
 @stoppable('gp-gpis-opt')
 def plan_gp_gpis_opt(ctx, rngs, seed, t0, tracker) -> GraspResult:
     """GP-GPIS-OPT (Algorithm 1): N_g SCP runs on eq. 6 with the antipodal constraints."""
     return optimise(ctx, 'gp-gpis-opt', ctx.params.n_initial_grasps, ctx.params.uncertainty_penalty, True, rngs,
-                     t0, seed, tracker=tracker)
+                    t0, seed, tracker=tracker)
 
 
 @stoppable('gp-gpis-opt-reranked')
 def plan_gp_gpis_opt_reranked(ctx, rngs, seed, t0, tracker) -> GraspResult:
     """GP-GPIS-OPT whose N_g local optima are re-scored by Monte-Carlo P_F (beyond the paper)."""
     return optimise(ctx, 'gp-gpis-opt-reranked', ctx.params.n_initial_grasps, ctx.params.uncertainty_penalty, True,
-                     rngs, t0, seed, rerank=True, tracker=tracker)
+                    rngs, t0, seed, rerank=True, tracker=tracker)
 

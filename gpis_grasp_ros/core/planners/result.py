@@ -152,7 +152,6 @@ class Tracker:
         self.check()
 
 
-
 def empty_result(method: str, message: str, t_start: float, seed: int | None, **kw) -> GraspResult:
     nan2 = np.full(2, np.nan)
     return GraspResult(method=method, success=False, message=message, jaw1=nan2.copy(), jaw2=nan2.copy(),

@@ -90,7 +90,6 @@ def surface_sample(ctx: PlanningContext, n: int, rng: np.random.Generator) -> np
     return p
 
 
-
 def _grasp_distance(a1: np.ndarray, a2: np.ndarray, b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
     """Distance between unordered jaw pairs (m), broadcasting."""
     same = np.linalg.norm(a1 - b1, axis=-1) + np.linalg.norm(a2 - b2, axis=-1)
