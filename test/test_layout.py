@@ -5,7 +5,7 @@
 * ``sim``   — the scene simulator and object catalogue: ``core``, ``data``, ``sim``.
 * ``viz``   — images of grids and grasps: ``core``, ``viz``.
 * ``ros``   — nodes, rclpy conversions, bag player (the only place for rclpy and messages):
-  ``core``, ``data``, ``viz``, ``ros``.
+  ``core``, ``data``, ``sim``, ``viz``, ``ros`` (the gripper simulator node executes grasps with ``sim``).
 * ``tools`` — command line, demo, benchmarks: anything.
 """
 
@@ -27,7 +27,7 @@ ALLOWED: dict[str, set[str]] = {
     'data': {'core', 'data'},
     'sim': {'core', 'data', 'sim'},
     'viz': {'core', 'viz'},
-    'ros': {'core', 'data', 'viz', 'ros'},
+    'ros': {'core', 'data', 'sim', 'viz', 'ros'},
     'tools': {'core', 'data', 'sim', 'viz', 'ros', 'tools'},
 }
 ROS_FREE = ('core', 'data', 'sim', 'viz')

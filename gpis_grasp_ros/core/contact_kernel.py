@@ -17,7 +17,7 @@ seen from jaw 2 is the first crossing of the same line walked backwards from its
 
 **Lines that leave the padded grid** (a small object: the 9 cm opening spans many of its cells).
 Beyond the padded grid the SDF is the value at the nearest point of the padded grid plus the
-distance (m), as :meth:`contacts.SdfBank.values_cells` extrapolates it (:func:`_extended`). Along a
+distance (m), as :meth:`sdf_bank.SdfBank.values_cells` extrapolates it (:func:`_extended`). Along a
 line that field is piecewise simple (:func:`off_grid_crossing`): beside an edge of the grid it is the
 edge's value (linear between two nodes) plus the distance to the edge (linear), so linear between
 the points where the line crosses a node's row or column; beside a corner it is the corner node's

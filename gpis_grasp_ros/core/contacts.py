@@ -1,90 +1,23 @@
-"""Parallel-jaw grasp model and contact finding on signed-distance grids (paper section V-B).
+"""Contact finding of parallel jaws closing on signed-distance grids (paper section V-B).
 
-A grasp is a pair of jaw positions ``g = (g1, g2)`` (metres, grid/sensor frame). During execution
-the jaws land at the *perturbed grasp* ``ĝ``::
-
-    ĝ1 ~ N(g1, σ_g² I),        ĝ2 | ĝ1 ~ N(ĝ1 + (g2 − g1), σ_g² I)
-
-and close along the line between them. The contact ``c_i`` of jaw ``i`` is the first zero
-crossing of the SDF ``f`` met by the jaw while it travels toward the other jaw.
-
-Choices where the paper is silent (documented here, relied on by :mod:`quality` and :mod:`planners`):
-
-* **Jaw width.** The jaw face (width ``w_j``, perpendicular to the closing direction) is
-  represented by parallel face lines spread evenly across the face, at most
-  ``face_line_spacing_cells`` (0.25) grid cell apart (:meth:`GripperParams.face_offsets`).
-  Both jaws travel on the same lines (ĝ2 lies on the line through ĝ1 along the closing
-  direction), so each line is searched once from both ends. The first contact anywhere across the
-  face wins. 0.25 cell is where P_F stops depending on the spacing: on the shipped bags halving it
-  moves P_F of the planned grasps by at most 0.004 (< 1 standard error at S = 1000), while 1-cell
-  lines had moved it by up to 0.09 (``test/core/test_contact_refinement.py``).
-* **Contact patch.** A rigid flat jaw meeting a flat face touches along a segment, not at the
-  corner line that happens to cross first. Lines whose crossing lies within
-  ``contact_patch_cells`` (0.5 cell; or ``contact_patch`` in m, which :meth:`GripperParams.resolved`
-  fixes from the planning grid so executions on a finer true grid model the same jaw) of the
-  first touch form the patch, weighted by a linear
-  ramp (1 at the first touch, 0 at the tolerance) times the trapezoid weight of the line (½ for
-  the two edge lines, which stand for half a spacing); the contact is the patch centre. A spike
-  hit by one edge line is still the contact (nothing else is within the tolerance), a flat face
-  gives the centre of the jaw, and the contact moves continuously with the jaws (needed for
-  finite differences).
-* **Exact crossings** (``exact_crossings``, default). Each face line is cut where it crosses a
-  grid line; inside a cell the bilinear SDF restricted to the line is a quadratic, so the first
-  zero crossing seen from each jaw is found in closed form — sub-cell exact, with no sampling step
-  that a sliver of the object (common in GP shape samples) could slip through. The march step
-  ``march_step_cells`` no longer matters for lines on the (padded) grid. Outside the grid the SDF
-  is extrapolated as ``f(nearest node) + distance`` (the grid border is free space and a distance
-  grows at most by the distance travelled), so jaws may start off the grid; lines that leave the
-  padded grid, and ``exact_crossings=False``, use the sampled march: ``n = ceil(L /
-  march_step_cells)`` equal steps, the bracket around the first sign change halved once and the
-  crossing placed by linear interpolation. The old default (1-cell step and 1-cell face lines)
-  biased P_F upward by up to several standard errors (issue 11, item 6).
-* **Normals.** Outward normals are the normalised SDF gradient, bilinearly interpolated at the
-  contact. For the GPIS mean the gradient is the posterior's analytic ``gradient`` (paper V-A:
-  ``n = ∇μ/‖∇μ‖``); for a Monte-Carlo *sample* f the normal must come from f itself (the surface
-  being grasped is f's zero set, whose orientation differs from the mean's), so
-  :class:`SdfBank` defaults to central finite differences of each stored grid.
-* **Degenerate grasps** are flagged, never silently "repaired": ``no_contact`` (no zero crossing
-  on any line), ``start_inside`` (a sample of a jaw face already has ``f <= 0``: the jaw would
-  land on the object), ``no_normal`` (the SDF gradient vanishes at a contact, so there is no
-  normal; its normal is NaN) and ``opening_exceeded`` (commanded opening ``‖g2 − g1‖ > w_g``).
-  ``valid`` is the conjunction of their negations. The opening check applies to the *commanded*
-  jaws passed in; Monte-Carlo code checks the nominal grasp once and calls with
-  ``check_opening=False`` for the perturbed jaws, because positioning noise is an execution
-  error, not a command the gripper could refuse.
-
-**Performance.** Contacts (exact crossings, patch) and normals of trials on the padded grid are
-found by compiled numba kernels (:mod:`contact_kernel`, float64): each face line is walked cell
-by cell from each jaw, first jumping ahead by f / L where the grid's Lipschitz constant L proves
-there is no zero, and the walk stops at the first crossing — or as soon as it is farther than
-the contact-patch tolerance beyond the nearest touch found on the other lines (such a crossing
-has zero patch weight) — instead of solving the quadratic on every cell of every line: about
-7x less CPU per call on the planners benchmark than the vectorised implementation, which is
-kept as the reference (``compiled=False``). Lines that leave the padded grid (small objects: the
-9 cm opening spans far more cells than the grid) are walked by the kernel too, with exact crossings
-of the extrapolated SDF off the grid (piecewise linear beside an edge, a circle around a corner
-node; skipped where the grid's padded border is positive, :attr:`SdfBank.border_positive`, since
-the field cannot vanish there); the reference marches them every ``OFF_GRID_STEP_CELLS`` (on a 25 x 25
-grid of 1.2-1.6 mm cells GP-GPIS-OPT took 7-12 s with every such line marched, 0.2 s with the kernel:
-``python -m gpis_grasp_ros.bench planners --small``). In the numpy path everything is vectorised
-over a flat batch of
-"trials" (a perturbed grasp paired with one SDF of a bank, e.g. G grasps × S shape samples),
-processed in chunks of about 65k interpolated points so temporaries stay in cache and are reused
-between chunks (a per-thread workspace avoids re-faulting fresh large arrays). The bank stores,
-per cell of a padded grid, the 4 bilinear coefficients as one float32 record, so each lookup is a
-single gather; sample positions are float32 (1e-6 cell round-off).
+A grasp is a pair of jaw positions ``g = (g1, g2)`` (metres, grid/sensor frame); during execution the jaws land
+at the perturbed grasp ``ĝ1 ~ N(g1, σ_g² I)``, ``ĝ2 | ĝ1 ~ N(ĝ1 + (g2 − g1), σ_g² I)`` (:func:`perturb_grasps`)
+and close along the line between them; the contact of each jaw is the first zero crossing of the SDF it meets
+(:func:`find_contacts`). The jaw face is a set of parallel face lines, the contact the centre of a continuous
+contact patch, crossings exact on the bilinear SDF (compiled kernel of :mod:`contact_kernel`; the vectorised
+numpy march here is the reference). The model choices are in ``docs/planning.md``.
 """
 
 from __future__ import annotations
 
 import math
-import threading
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
-from gpis_grasp_ros.core.contact_kernel import border_positive, exact_contacts, lipschitz_bounds, unit_normals
-from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.contact_kernel import exact_contacts, unit_normals
+from gpis_grasp_ros.core.gripper import GripperParams
+from gpis_grasp_ros.core.sdf_bank import MIN_GRADIENT_NORM, WORKSPACE, SdfBank, gather_records
 
 #: Interpolated points per chunk in :func:`find_contacts`: small enough for the temporaries to stay in
 #: cache (about 2x faster than large chunks), large enough to amortise the Python overhead.
@@ -95,354 +28,6 @@ KERNEL_TRIALS_PER_CHUNK = 1 << 14
 
 #: March step (cells) of the numpy reference (``compiled=False``) for lines that leave the padded grid.
 OFF_GRID_STEP_CELLS = 0.1
-
-#: An SDF gradient norm (dimensionless; 1 for an exact SDF) at or below this defines no normal:
-#: the contact is flagged ``no_normal`` (invalid) instead of being given an arbitrary direction.
-MIN_GRADIENT_NORM = 1e-6
-
-
-@dataclass(frozen=True)
-class GripperParams:
-    """Parallel-jaw gripper (paper V-B). Lengths in metres.
-
-    ``friction_coef`` γ = 0.5 is a typical rubber-pad-on-plastic/cardboard value (the paper
-    assumes a known constant γ without giving it); β = cos(arctan γ) of eq. 5 follows from it.
-    ``position_noise`` σ_g (m) defaults to ``None``: then ``position_noise_cells`` × the grid
-    resolution is used, i.e. the paper's σ_g² = 0.25 cells² (σ_g = 0.5 cell), which can only be
-    resolved once the planning grid is known (see :meth:`sigma_g` and :meth:`resolved`).
-    """
-
-    jaw_width: float = 0.01  # w_j, m
-    max_opening: float = 0.09  # w_g, m (about a PR2 gripper)
-    friction_coef: float = 0.5  # γ, dimensionless
-    position_noise: float | None = None  # σ_g, m; None -> position_noise_cells * resolution
-    position_noise_cells: float = 0.5  # σ_g in cells of the planning grid (paper: σ_g² = 0.25)
-    march_step_cells: float = 1.0  # sampling step of the sampled march (off-grid lines / exact_crossings=False)
-    face_line_spacing_cells: float = 0.25  # max spacing of the face lines across a jaw face, cells
-    contact_patch_cells: float = 0.5  # lines touching within this distance of the first touch form the patch
-    contact_patch: float | None = None  # the same tolerance in m; None -> contact_patch_cells * resolution
-    exact_crossings: bool = True  # exact zero crossings of the bilinear SDF (False: sampled march, step above)
-
-    def __post_init__(self) -> None:
-        if not self.jaw_width >= 0:
-            raise ValueError(f'jaw width must be >= 0 m, got {self.jaw_width}')
-        if not self.max_opening > 0:
-            raise ValueError(f'max opening must be > 0 m, got {self.max_opening}')
-        if not self.friction_coef > 0:
-            raise ValueError(f'friction coefficient must be > 0, got {self.friction_coef}')
-        if self.position_noise is not None and not self.position_noise >= 0:
-            raise ValueError(f'position noise must be >= 0 m, got {self.position_noise}')
-        if self.contact_patch is not None and not self.contact_patch > 0:
-            raise ValueError(f'contact patch tolerance must be > 0 m, got {self.contact_patch}')
-        if not (self.march_step_cells > 0 and self.face_line_spacing_cells > 0):
-            raise ValueError('march step and face line spacing must be positive')
-
-    @property
-    def beta(self) -> float:
-        """β = cos(arctan γ) of the antipodal constraints (eq. 5)."""
-        return float(math.cos(math.atan(self.friction_coef)))
-
-    @staticmethod
-    def position_noise_from_cells(sigma_cells: float, geometry: GridGeometry) -> float:
-        """σ_g in metres from σ_g in cells of ``geometry`` (paper: σ_g² = 0.25 cells² → 0.5)."""
-        return float(sigma_cells) * geometry.resolution
-
-    def sigma_g(self, geometry: GridGeometry) -> float:
-        """Jaw positioning noise σ_g (m) for planning on ``geometry``."""
-        if self.position_noise is not None:
-            return float(self.position_noise)
-        return self.position_noise_from_cells(self.position_noise_cells, geometry)
-
-    def patch_cells(self, geometry: GridGeometry) -> float:
-        """Contact-patch tolerance in cells of ``geometry`` (the grid the jaws close on)."""
-        if self.contact_patch is not None:
-            return float(self.contact_patch) / geometry.resolution
-        return float(self.contact_patch_cells)
-
-    def resolved(self, geometry: GridGeometry) -> GripperParams:
-        """Copy with ``position_noise`` and ``contact_patch`` fixed in metres on the planning grid
-        ``geometry`` (use before executing on another grid, e.g. the 1 mm ground truth)."""
-        return replace(self, position_noise=self.sigma_g(geometry),
-                       contact_patch=self.patch_cells(geometry) * geometry.resolution)
-
-    def face_offsets(self, geometry: GridGeometry) -> np.ndarray:
-        """Lateral offsets (m) of the march lines across a jaw face, centred on the jaw."""
-        spacing = self.face_line_spacing_cells * geometry.resolution
-        n = 1 if self.jaw_width <= 0 else int(math.ceil(self.jaw_width / spacing - 1e-9)) + 1
-        if n == 1:
-            return np.zeros(1)
-        return np.linspace(-0.5 * self.jaw_width, 0.5 * self.jaw_width, n)
-
-
-def _coefficient_records(grids: np.ndarray, dtype: type = np.float32) -> np.ndarray:
-    """Per-cell bilinear coefficients of grids ``(B, H, W)`` as records ``(B*H*W, 4)`` of ``dtype``.
-
-    Inside cell (i, j) — corners (i, j)..(i+1, j+1) — ``f = a + b·fx + c·fy + d·fx·fy`` with
-    ``fx, fy ∈ [0, 1]`` the fractional column and row offsets. The last row and column of cells
-    are degenerate (they only interpolate along the grid's border), so a point exactly on the
-    far border needs no index clamping; the row stride is W.
-    """
-    f = np.asarray(grids)
-    out = np.zeros(f.shape + (4,), dtype=dtype)
-    out[..., 0] = f
-    out[:, :, :-1, 1] = f[:, :, 1:] - f[:, :, :-1]
-    out[:, :-1, :, 2] = f[:, 1:, :] - f[:, :-1, :]
-    out[:, :-1, :-1, 3] = f[:, 1:, 1:] - f[:, 1:, :-1] - f[:, :-1, 1:] + f[:, :-1, :-1]
-    return out.reshape(-1, 4)
-
-
-def _pad_extrapolated(grids: np.ndarray, pad: int, resolution: float) -> np.ndarray:
-    """Grids ``(B, H, W)`` padded by ``pad`` nodes per side with ``f(nearest node) + distance``."""
-    _, h, w = grids.shape
-    ii = np.arange(-pad, h + pad)
-    jj = np.arange(-pad, w + pad)
-    ic = np.clip(ii, 0, h - 1)
-    jc = np.clip(jj, 0, w - 1)
-    dist = np.hypot((ii - ic)[:, None], (jj - jc)[None, :]) * resolution
-    return grids[:, ic[:, None], jc[None, :]] + dist[None]
-
-
-def _bilinear_combine(rec: np.ndarray, fx: np.ndarray, fy: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """k0 + k1 fx + (k2 + k3 fx) fy from gathered coefficients ``rec[..., 0:4]``, in place (fx is overwritten)."""
-    np.multiply(rec[..., 3], fx, out=out)
-    out += rec[..., 2]
-    out *= fy
-    np.multiply(rec[..., 1], fx, out=fx)
-    out += fx
-    out += rec[..., 0]
-    return out
-
-
-class _Workspace(threading.local):
-    """Per-thread scratch arrays reused between chunks (avoids re-faulting fresh large temporaries)."""
-
-    max_arrays = 96
-
-    def __init__(self) -> None:
-        self.arrays: dict[tuple, np.ndarray] = {}
-
-    def get(self, name: str, shape: tuple[int, ...], dtype: type = np.float64) -> np.ndarray:
-        key = (name, shape, np.dtype(dtype).char)
-        arr = self.arrays.get(key)
-        if arr is None:
-            if len(self.arrays) >= self.max_arrays:
-                self.arrays.clear()
-            arr = self.arrays[key] = np.empty(shape, dtype=dtype)
-        return arr
-
-
-_WS = _Workspace()
-
-#: One record of 4 coefficients as a single numpy element: float32 x 4 = complex128, float64 x 4 = 2 x complex128.
-_RECORD = {'f': np.dtype(np.complex128), 'd': np.dtype((np.void, 32))}
-
-
-def _gather4(rec: np.ndarray, flat: np.ndarray, dtype: np.dtype, name: str) -> np.ndarray:
-    """Gather coefficient records at ``flat`` → (..., 4) view of ``dtype`` (per-thread scratch)."""
-    out = _WS.get(name, flat.shape, rec.dtype)
-    np.take(rec, flat, out=out)
-    return out.view(dtype).reshape(flat.shape + (4,))
-
-
-class SdfBank:
-    """A stack of ``B`` SDF grids (m) on one geometry, prepared for batched bilinear lookups.
-
-    ``gradients`` (B, H, W, 2) holds ∂f/∂x, ∂f/∂y (dimensionless); by default central finite
-    differences of each grid (the right normals for Monte-Carlo samples). Pass the GPIS
-    posterior's analytic gradient for the mean shape.
-
-    Values are interpolated from grids padded by ``pad_cells`` extrapolated nodes per side
-    (``f(nearest node) + distance``), so jaws a few cells off the grid need no clamping; farther
-    points are clamped to the padded grid and the remaining distance is added. Coefficients are
-    stored in ``dtype`` (float32 by default: a 1000-sample bank of a 25 x 25 grid takes ~42 MB
-    with the gradient coefficients; SDF round-off ~1e-8 m) for the vectorised numpy path;
-    ``padded`` and ``gradient_grids`` keep float64 copies for the compiled kernel (another ~21 MB
-    for that bank). ``sdfs`` keeps the float64 grids. Read-only after construction (safe to share
-    between threads; the Lipschitz bounds are computed once on first use).
-    """
-
-    def __init__(self, sdfs: np.ndarray, geometry: GridGeometry, gradients: np.ndarray | None = None,
-                 pad_cells: int = 6, dtype: type = np.float32) -> None:
-        sdfs = np.asarray(sdfs, dtype=np.float64)
-        if sdfs.ndim == 2:
-            sdfs = sdfs[None]
-        if sdfs.ndim != 3 or sdfs.shape[1:] != geometry.shape:
-            raise ValueError(f'SDF grids must have shape (B, {geometry.height}, {geometry.width}), got {sdfs.shape}')
-        if geometry.height < 2 or geometry.width < 2:
-            raise ValueError('contact finding needs a grid of at least 2 x 2 cells')
-        self.geometry = geometry
-        self.sdfs = sdfs
-        self.n = sdfs.shape[0]
-        res = geometry.resolution
-        if gradients is None:
-            gy, gx = np.gradient(sdfs, res, axis=(1, 2))
-        else:
-            gradients = np.asarray(gradients, dtype=np.float64)
-            if gradients.ndim == 3:
-                gradients = gradients[None]
-            if gradients.shape != sdfs.shape + (2,):
-                raise ValueError(f'gradients must have shape {sdfs.shape + (2,)}, got {gradients.shape}')
-            gx, gy = gradients[..., 0], gradients[..., 1]
-        self.pad = int(pad_cells)
-        self._pw = geometry.width + 2 * self.pad
-        self._ph = geometry.height + 2 * self.pad
-        # Array-of-structures: the 4 coefficients of a cell are adjacent and gathered as one record
-        # (a 16-byte element for float32), ~1.5x faster than 4 gathers when lookups miss the cache.
-        self._coef_dtype = np.dtype(dtype)
-        record = _RECORD[self._coef_dtype.char]
-        #: float64 padded grids (B, Hp, Wp) read by the compiled kernel (:mod:`contact_kernel`)
-        self.padded = np.ascontiguousarray(_pad_extrapolated(sdfs, self.pad, res))
-        self._lipschitz: np.ndarray | None = None
-        self._border_positive: np.ndarray | None = None
-        self._coef_rec = _coefficient_records(self.padded, dtype).view(record).reshape(-1)
-        self._cells_padded = self._ph * self._pw
-        self._float_index_exact = self.n * self._cells_padded < 2 ** 24
-        self._grad_rec = tuple(_coefficient_records(gc, dtype).view(record).reshape(-1) for gc in (gx, gy))
-        #: float64 gradient grids (B, H, W, 2) read by the compiled normals (:func:`contact_kernel.unit_normals`)
-        self.gradient_grids = np.ascontiguousarray(np.stack([gx, gy], axis=-1), dtype=np.float64)
-        self._cells_per_grid = geometry.height * geometry.width
-
-    @property
-    def border_positive(self) -> np.ndarray:
-        """(B,) bool: every border node of the padded grid is > 0, so the extrapolated SDF has no zero
-        off the padded grid and the compiled kernel walks lines that leave it only over the grid
-        (:func:`contact_kernel.border_positive`; computed on first use)."""
-        if self._border_positive is None:
-            self._border_positive = border_positive(self.padded)
-        return self._border_positive
-
-    @property
-    def lipschitz(self) -> np.ndarray:
-        """(B,) bounds (m per cell) on the gradient norm of each padded grid's bilinear interpolant
-        (computed on first use; :func:`contact_kernel.lipschitz_bounds`)."""
-        if self._lipschitz is None:
-            self._lipschitz = lipschitz_bounds(self.padded)
-        return self._lipschitz
-
-    def _locate(self, u: np.ndarray, v: np.ndarray, index: np.ndarray | None):
-        """Flat cell index and fractional offsets of unpadded cell coordinates (clamped to the grid)."""
-        g = self.geometry
-        uc = np.clip(u, 0.0, g.width - 1.0)
-        vc = np.clip(v, 0.0, g.height - 1.0)
-        j0 = uc.astype(np.intp)
-        i0 = vc.astype(np.intp)
-        fx = uc - j0
-        fy = vc - i0
-        flat = i0 * g.width
-        flat += j0
-        if index is not None:
-            flat += np.asarray(index, dtype=np.intp) * self._cells_per_grid
-        return flat, fx, fy
-
-    def values_cells(self, u: np.ndarray, v: np.ndarray, index: np.ndarray | None = None,
-                     on_padded_grid: bool | None = None, scratch: bool = False) -> np.ndarray:
-        """SDF (m) at fractional cell coordinates ``u`` (col), ``v`` (row), extrapolated off-grid.
-
-        ``index`` (broadcastable to ``u``) selects the grid of the bank; ``None`` means grid 0.
-        ``on_padded_grid`` may assert that every point lies on the padded grid (skips the check);
-        ``scratch=True`` returns a per-thread scratch array overwritten by the next such call.
-        """
-        u = np.asarray(u, dtype=np.float64)
-        v = np.asarray(v, dtype=np.float64)
-        p = self.pad
-        wp1, hp1 = self._pw - 1.0, self._ph - 1.0
-        shape = np.broadcast_shapes(u.shape, v.shape)
-        ws = _WS
-        up = np.add(u, p, out=ws.get('up', shape))
-        vp = np.add(v, p, out=ws.get('vp', shape))
-        if on_padded_grid is None:
-            on_padded_grid = up.size == 0 or bool(up.min() >= 0.0 and vp.min() >= 0.0
-                                                  and up.max() <= wp1 and vp.max() <= hp1)
-        extra = None
-        if not on_padded_grid:
-            uc = np.clip(up, 0.0, wp1)
-            vc = np.clip(vp, 0.0, hp1)
-            extra = np.hypot(up - uc, vp - vc) * self.geometry.resolution
-            up, vp = uc, vc
-        j0 = ws.get('j0', shape, np.intp)
-        np.copyto(j0, up, casting='unsafe')  # truncation = floor for non-negative coordinates
-        i0 = ws.get('i0', shape, np.intp)
-        np.copyto(i0, vp, casting='unsafe')
-        fx = np.subtract(up, j0, out=ws.get('fx', shape))
-        fy = np.subtract(vp, i0, out=ws.get('fy', shape))
-        i0 *= self._pw
-        i0 += j0
-        if index is not None:
-            i0 += np.asarray(index, dtype=np.intp) * self._cells_padded
-        rec = _gather4(self._coef_rec, i0, self._coef_dtype, 'rec')
-        out = _bilinear_combine(rec, fx, fy, ws.get('val', shape) if scratch else np.empty(shape))
-        if extra is not None:
-            out += extra
-        return out
-
-    def _values_padded32(self, up: np.ndarray, vp: np.ndarray, offset: np.ndarray | None,
-                         tag: str = '') -> np.ndarray:
-        """Hot path of the march: float32 *padded* cell coordinates, all on the padded grid (>= 0).
-
-        ``offset`` is the grid index times the cells per padded grid (broadcastable). Returns a
-        per-thread float32 scratch array (named by ``tag``).
-        """
-        shape = up.shape
-        ws = _WS
-        fu = np.floor(up, out=ws.get('fu' + tag, shape, np.float32))
-        fv = np.floor(vp, out=ws.get('fv' + tag, shape, np.float32))
-        fx = np.subtract(up, fu, out=ws.get('fx32' + tag, shape, np.float32))
-        fy = np.subtract(vp, fv, out=ws.get('fy32' + tag, shape, np.float32))
-        fv *= self._pw
-        fv += fu
-        flat = ws.get('flat' + tag, shape, np.intp)
-        if offset is not None and self._float_index_exact:
-            fv += np.asarray(offset, dtype=np.float32)  # cell index < 2**24: exact in float32
-            np.copyto(flat, fv, casting='unsafe')
-        else:
-            np.copyto(flat, fv, casting='unsafe')
-            if offset is not None:
-                flat += offset
-        rec = _gather4(self._coef_rec, flat, self._coef_dtype, 'rec32' + tag)
-        return _bilinear_combine(rec, fx, fy, ws.get('val32' + tag, shape, self._coef_dtype))
-
-    def values(self, xy: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
-        """SDF (m) at metric points ``(..., 2)``."""
-        uv = self.geometry.to_cell(xy)
-        return self.values_cells(uv[..., 0], uv[..., 1], index)
-
-    def gradients_at(self, xy: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
-        """Bilinearly interpolated SDF gradient ``(..., 2)`` at metric points (clamped to the grid)."""
-        uv = self.geometry.to_cell(xy)
-        flat, fx, fy = self._locate(uv[..., 0], uv[..., 1], index)
-        out = np.empty(flat.shape + (2,))
-        for k in range(2):
-            rec = _gather4(self._grad_rec[k], flat, self._coef_dtype, 'grad')
-            out[..., k] = rec[..., 0] + fx * rec[..., 1] + fy * (rec[..., 2] + fx * rec[..., 3])
-        return out
-
-    def normals_at(self, xy: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
-        """Unit outward normals ``(..., 2)`` (normalised gradient); zero where the gradient vanishes
-        (‖∇f‖ <= :data:`MIN_GRADIENT_NORM`)."""
-        grad = self.gradients_at(xy, index)
-        norm = np.sqrt(grad[..., 0] ** 2 + grad[..., 1] ** 2)[..., None]
-        ok = norm > MIN_GRADIENT_NORM
-        grad /= np.where(ok, norm, 1.0)
-        grad *= ok
-        return grad
-
-
-def bilinear(grid: np.ndarray, geometry: GridGeometry, xy: np.ndarray) -> np.ndarray:
-    """Bilinear interpolation of one ``(H, W)`` grid at metric points ``(..., 2)`` (clamped to the grid)."""
-    grid = np.asarray(grid, dtype=np.float64)
-    uv = geometry.to_cell(xy)
-    h, w = geometry.shape
-    u = np.clip(uv[..., 0], 0.0, w - 1.0)
-    v = np.clip(uv[..., 1], 0.0, h - 1.0)
-    j0 = np.minimum(u.astype(np.intp), max(w - 2, 0))
-    i0 = np.minimum(v.astype(np.intp), max(h - 2, 0))
-    j1 = np.minimum(j0 + 1, w - 1)
-    i1 = np.minimum(i0 + 1, h - 1)
-    fx = u - j0
-    fy = v - i0
-    top = grid[i0, j0] * (1 - fx) + grid[i0, j1] * fx
-    bottom = grid[i1, j0] * (1 - fx) + grid[i1, j1] * fx
-    return top * (1 - fy) + bottom * fy
 
 
 @dataclass
@@ -488,7 +73,7 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     """Contacts of jaws closing from ``jaw1`` and ``jaw2`` (m, shape ``(..., 2)``) on SDFs of ``bank``.
 
     ``index`` (int array broadcastable to the leading shape, or None for grid 0) selects which
-    grid of the bank each trial closes on. See the module docstring for the algorithm.
+    grid of the bank each trial closes on. The contact model is described in docs/planning.md.
     ``compiled=False`` finds the exact crossings with the vectorised numpy implementation (float32,
     every cell of every line) instead of the compiled kernel: the independent reference the tests
     compare the kernel against; both implement the same model.
@@ -631,7 +216,7 @@ def _exact_crossings(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.nda
     flat = (cv * bank._pw + cu).astype(np.intp)
     if idx is not None:
         flat += (np.asarray(idx, dtype=np.intp) * bank._cells_padded)[:, None, None]
-    rec = _gather4(bank._coef_rec, flat, bank._coef_dtype, 'exact')
+    rec = gather_records(bank._coef_rec, flat, bank._coef_dtype, 'exact')
     k0, k1, k2, k3 = rec[..., 0], rec[..., 1], rec[..., 2], rec[..., 3]
     fa = px + t0 * ux - cu  # fractional position in the cell at the segment start
     fb = py + t0 * uy - cv
@@ -693,15 +278,15 @@ def _sampled_crossings(bank: SdfBank, ox: np.ndarray, oy: np.ndarray, unit: np.n
     shape = (n_t, n_lines, n_steps)
     tt = (np.minimum(np.arange(n_steps, dtype=np.float64), n_seg[:, None]) * dt).astype(np.float32)[:, None, :]
     u32 = unit.astype(np.float32)
-    px = np.multiply(tt, u32[:, 0, None, None], out=_WS.get('march_x', shape, np.float32))
+    px = np.multiply(tt, u32[:, 0, None, None], out=WORKSPACE.get('march_x', shape, np.float32))
     px += (ox + pad).astype(np.float32)[:, :, None]
-    py = np.multiply(tt, u32[:, 1, None, None], out=_WS.get('march_y', shape, np.float32))
+    py = np.multiply(tt, u32[:, 1, None, None], out=WORKSPACE.get('march_y', shape, np.float32))
     py += (oy + pad).astype(np.float32)[:, :, None]
     if on_padded:
         f = bank._values_padded32(px, py, None if idx is None else (idx * bank._cells_padded)[:, None, None])
     else:
         f = bank.values_cells(px - pad, py - pad, None if idx is None else idx[:, None, None], on_padded_grid=False)
-    neg = np.less_equal(f, 0.0, out=_WS.get('neg', shape, np.bool_))
+    neg = np.less_equal(f, 0.0, out=WORKSPACE.get('neg', shape, np.bool_))
     # Bracket of the first sign change seen from each jaw: (side, T, L) sample indices.
     first = np.argmax(neg, axis=2)
     last = (n_steps - 1) - np.argmax(neg[:, :, ::-1], axis=2)

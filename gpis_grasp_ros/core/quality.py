@@ -46,9 +46,11 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from gpis_grasp_ros.core.contacts import Contacts, GripperParams, SdfBank, find_contacts, perturb_grasps
+from gpis_grasp_ros.core.contacts import Contacts, find_contacts, perturb_grasps
 from gpis_grasp_ros.core.gpis import GpisPosterior, center_of_mass
 from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.gripper import GripperParams
+from gpis_grasp_ros.core.sdf_bank import SdfBank
 
 #: Number of trials (grasps × samples) evaluated at once by :func:`probability_force_closure`.
 MAX_TRIALS_PER_CHUNK = 1 << 13

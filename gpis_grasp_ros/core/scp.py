@@ -13,11 +13,8 @@ convex optimization" (RSS 2013), Algorithm 1:
   more than ``constraint_tol``, μ is multiplied by ``penalty_factor`` (up to ``penalty_max``)
   and the trust region is reset.
 * **Convexify loop.** f and g are linearised at the current point with finite differences
-  (user step ``fd_step``; forward by default, central optional). The convex model is
-  ``f + ∇fᵀd + ½ dᵀBd + μ Σ_i max(g_i + ∇g_iᵀd, 0)``, with ``B`` zero (a linear model) or a
-  damped-BFGS (Powell) approximation of the Hessian of the Lagrangian ``f + Σ λ_i g_i``, the
-  multipliers λ being the QP duals of the linearised constraints (``quasi_newton=True``). It
-  is minimised over the trust box ``|d|_∞ <= s`` as a QP with slack variables
+  (user step ``fd_step``; forward by default, central optional). The convex model is the linear
+  ``f + ∇fᵀd + μ Σ_i max(g_i + ∇g_iᵀd, 0)``, minimised over the trust box ``|d|_∞ <= s`` as a QP with slack variables
   ``t_i >= max(g_i + ∇g_iᵀd, 0)``. A proximal term keeps the QP strictly convex, which OSQP
   (ADMM) needs to converge quickly on what would otherwise be a degenerate LP: ``½ ρ_d ‖d‖²`` with
   ``ρ_d = prox_rel · (‖∇f‖∞ + w_μ μ max_i ‖∇g_i‖₁) / s`` (so that, in box-normalised units d/s,
@@ -63,8 +60,8 @@ convex optimization" (RSS 2013), Algorithm 1:
 for the active restarts only, so a failed subproblem concerns only its restart. With OSQP each
 restart has its own small problem, set up once (on its first iteration); each iteration only
 updates its vectors and matrix values (``OSQP.update``, warm-started from the previous solution)
-and solves it. (An earlier version put all restarts in one block-diagonal OSQP problem: it runs
-as many ADMM iterations as its hardest block needs and fails for all restarts at once.) The
+and solves it (a block-diagonal problem of all restarts would run as many ADMM iterations as its
+hardest block needs and fail for all restarts at once). The
 objective/constraint function is called on a batch of points (all candidates, or all
 finite-difference points of all restarts, at once), so it can be vectorised by the caller.
 
@@ -123,7 +120,6 @@ class ScpSettings:
     objective_tol: float = 0.0
     max_qp_failures: int = 3
     max_iterations: int = 200
-    quasi_newton: bool = False
     prox: float = 1e-8
     prox_rel: float = 0.1
     prox_penalty_weight: float = 0.01
@@ -178,19 +174,13 @@ class _BlockQp:
 
     def __init__(self, r: int, n: int, m: int, settings: ScpSettings) -> None:
         self.r, self.n, self.m = r, n, m
-        self.quasi_newton = settings.quasi_newton
         self.prox = settings.prox
         self.prox_rel = settings.prox_rel
         self.prox_mu = settings.prox_penalty_weight
         nv, nc = n + m, 2 * m + n
         self.nv, self.nc = nv, nc
-        # P: upper triangle of the d block (dense when quasi-Newton, diagonal otherwise) + t diagonal.
-        if self.quasi_newton:
-            self._pi, self._pj = np.triu_indices(n)
-            order = np.lexsort((self._pi, self._pj))  # CSC order: by column, then row
-            self._pi, self._pj = self._pi[order], self._pj[order]
-        else:
-            self._pi = self._pj = np.arange(n)
+        # P: diagonal of the d block + t diagonal.
+        self._pi = self._pj = np.arange(n)
         p_rows = np.concatenate([self._pi, np.arange(n, nv)])
         p_cols = np.concatenate([self._pj, np.arange(n, nv)])
         offs_v = (np.arange(r) * nv)[:, None]
@@ -235,7 +225,7 @@ class _BlockQp:
         up = np.concatenate([-g, np.full((r, m), np.inf), hi], axis=1).ravel()
         return q, low, up
 
-    def solve(self, grad, hess, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, str]:
+    def solve(self, grad, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, str]:
         """Steps d (R, n), multipliers (R, m) of the linearised constraints of all blocks, OSQP status.
 
         Inactive blocks: pass zeros and lo = hi = 0. The status is OSQP's (``'solved'``, ...),
@@ -245,7 +235,7 @@ class _BlockQp:
         q, low, up = self._vectors(grad, mu, g, lo, hi)
         rho_d, rho_t = _prox_weights(grad, jac, g, mu, radius, self.prox, self.prox_rel, self.prox_mu)
         diag = (self._pi == self._pj)[None, :]
-        hp = (hess[:, self._pi, self._pj] if self.quasi_newton else 0.0) + np.where(diag, rho_d[:, None], 0.0)
+        hp = np.where(diag, rho_d[:, None], 0.0)
         px = np.concatenate([hp, np.repeat(rho_t[:, None], self.m, axis=1)], axis=1).ravel()
         self.solver.update(q=q, l=low, u=up, Ax=self._a_data(jac), Px=px)
         res = self.solver.solve(raise_error=False)
@@ -280,8 +270,9 @@ class _ActiveSetQps:
     def __init__(self, r: int, n: int, m: int, settings: ScpSettings) -> None:
         self.r, self.n, self.m = r, n, m
         self.settings = settings
+        self.curvature = np.zeros((r, n, n))  # the model is linear: no curvature besides the proximal term
 
-    def solve(self, active, grad, hess, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    def solve(self, active, grad, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Steps d (R, n), multipliers (R, m), status per restart ('' for inactive restarts)."""
         st = self.settings
         rho_d, rho_t = _prox_weights(grad, jac, g, mu, radius, st.prox, st.prox_rel, st.prox_penalty_weight)
@@ -290,7 +281,7 @@ class _ActiveSetQps:
         codes = np.empty(self.r, dtype=np.int64)
         f64 = np.float64
         trust_region_steps(np.ascontiguousarray(active, dtype=np.bool_), np.ascontiguousarray(grad, dtype=f64),
-                           np.ascontiguousarray(hess, dtype=f64), np.ascontiguousarray(jac, dtype=f64),
+                           self.curvature, np.ascontiguousarray(jac, dtype=f64),
                            np.ascontiguousarray(g, dtype=f64), np.ascontiguousarray(mu, dtype=f64),
                            np.ascontiguousarray(lo, dtype=f64), np.ascontiguousarray(hi, dtype=f64),
                            np.ascontiguousarray(rho_d, dtype=f64), np.ascontiguousarray(rho_t, dtype=f64),
@@ -312,7 +303,7 @@ class _RestartQps:
         self.settings = settings
         self.blocks: list[_BlockQp | None] = [None] * r
 
-    def solve(self, active, grad, hess, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    def solve(self, active, grad, jac, g, mu, lo, hi, radius) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Steps d (R, n), multipliers (R, m) and OSQP status per restart ('' for inactive ones, whose
         step and multipliers are zero); see :meth:`_BlockQp.solve`."""
         d = np.zeros((self.r, self.n))
@@ -323,7 +314,7 @@ class _RestartQps:
             if qp is None:
                 qp = self.blocks[i] = _BlockQp(1, self.n, self.m, self.settings)
             sl = slice(i, i + 1)
-            di, li, status[i] = qp.solve(grad[sl], hess[sl], jac[sl], g[sl], mu[sl], lo[sl], hi[sl], radius[sl])
+            di, li, status[i] = qp.solve(grad[sl], jac[sl], g[sl], mu[sl], lo[sl], hi[sl], radius[sl])
             d[i], lam[i] = di[0], li[0]
         return d, lam, status
 
@@ -418,7 +409,6 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
     m = g.shape[1]
     all_rows = np.arange(r)
     grad, jac = derivatives(all_rows, f, g)
-    hess = np.zeros((r, n, n))
     mu = np.full(r, st.penalty_init)
     s = np.full(r, st.trust_radius_init)
     active = np.ones(r, dtype=bool)
@@ -442,7 +432,7 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
         hi = np.where(active[:, None], np.minimum(s[:, None], upper - x), 0.0)
         act = active[:, None]
         t0 = time.perf_counter()
-        d, lam, status = _polled(poll, st.poll_interval, qp.solve, active.copy(), np.where(act, grad, 0.0), hess,
+        d, _, status = _polled(poll, st.poll_interval, qp.solve, active.copy(), np.where(act, grad, 0.0),
                                  np.where(active[:, None, None], jac, 0.0),
                                  np.where(act, g, -1.0), np.where(active, mu, 1.0), lo, hi, np.where(active, s, 1.0))
         timers['qp'] += time.perf_counter() - t0
@@ -457,7 +447,7 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
         flat = np.zeros(r, dtype=bool)
         if solved.any():
             qp_failed_run[solved] = 0
-            model = (f + np.einsum('rn,rn->r', grad, d) + 0.5 * np.einsum('rn,rnk,rk->r', d, hess, d)
+            model = (f + np.einsum('rn,rn->r', grad, d)
                      + mu * np.maximum(g + np.einsum('rmn,rn->rm', jac, d), 0.0).sum(axis=1))
             predicted = merit - model
             scale = np.maximum(1.0, np.abs(merit))
@@ -485,11 +475,7 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
                     taken = np.abs(d[acc]).max(axis=1, initial=0.0)
                     s[acc] = np.minimum(np.maximum(s[acc], taken * st.trust_expand), st.trust_radius_max) \
                         if st.trust_expand_from_step else np.minimum(s[acc] * st.trust_expand, st.trust_radius_max)
-                    lag_old = grad[acc] + np.einsum('km,kmn->kn', lam[acc], jac[acc])
                     grad[acc], jac[acc] = derivatives(acc, f[acc], g[acc])
-                    if st.quasi_newton:
-                        lag_new = grad[acc] + np.einsum('km,kmn->kn', lam[acc], jac[acc])
-                        hess[acc] = _damped_bfgs(hess[acc], step, lag_new - lag_old)
                 if st.trust_expand_from_step:  # shrink below the rejected step, not just the box
                     s[reject] = st.trust_shrink * np.minimum(s[reject], np.abs(d[reject]).max(axis=1, initial=0.0))
                 else:
@@ -569,27 +555,3 @@ def _polled(poll: Callable[[], None] | None, interval: float, fn: Callable, *arg
         raise out['error']
     return out['value']
 
-
-def _damped_bfgs(b: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Powell-damped BFGS update of Hessian approximations b (k, n, n) (stays positive semidefinite)."""
-    out = b.copy()
-    for i in range(b.shape[0]):
-        bi, si, yi = b[i], s[i], y[i]
-        ss = float(si @ si)
-        if ss <= 1e-300:
-            continue
-        sy = float(si @ yi)
-        if not np.any(bi):
-            if sy <= 1e-12 * ss:
-                continue
-            bi = np.eye(len(si)) * (float(yi @ yi) / sy)
-        bs = bi @ si
-        sbs = float(si @ bs)
-        if sbs <= 1e-300:
-            continue
-        if sy < 0.2 * sbs:
-            theta = 0.8 * sbs / (sbs - sy)
-            yi = theta * yi + (1 - theta) * bs
-            sy = float(si @ yi)
-        out[i] = bi - np.outer(bs, bs) / sbs + np.outer(yi, yi) / sy
-    return out

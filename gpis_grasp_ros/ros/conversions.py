@@ -17,6 +17,8 @@ import numpy as np
 
 from gpis_grasp_ros.core import contacts
 from gpis_grasp_ros.core.grid import GridGeometry, rotation_to_quaternion
+from gpis_grasp_ros.core.gripper import GripperParams
+from gpis_grasp_ros.core.sdf_bank import SdfBank
 from gpis_grasp_ros.data.messages import MessageFactory
 
 # array.array type codes of the ROS primitive types used by the builders (rclpy sequences).
@@ -134,8 +136,8 @@ def mean_shape_contacts(posterior: Any, result: Any, jaw_width: float) -> np.nda
     jaws = np.concatenate([np.ravel(result.jaw1), np.ravel(result.jaw2)])
     if not bool(result.success) or not np.isfinite(jaws).all():
         return None
-    bank = contacts.SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
-    con = contacts.find_contacts(bank, result.jaw1, result.jaw2, contacts.GripperParams(jaw_width=jaw_width),
+    bank = SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
+    con = contacts.find_contacts(bank, result.jaw1, result.jaw2, GripperParams(jaw_width=jaw_width),
                                  check_opening=False)
     if not bool(np.ravel(con.valid)[0]):
         return None

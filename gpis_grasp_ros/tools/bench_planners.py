@@ -43,9 +43,9 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from gpis_grasp_ros.core import contacts
-from gpis_grasp_ros.core.contacts import GripperParams
 from gpis_grasp_ros.core.gpis import GpisPosterior, KernelParams
 from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.planners import PlannerParams, plan
 from gpis_grasp_ros.core.quality import ShapeSamples, draw_shape_samples, probability_force_closure
 

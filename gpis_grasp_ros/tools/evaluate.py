@@ -1,6 +1,6 @@
 """``gpis-grasp evaluate``: dataset-scale evaluation as independent tasks on three executors.
 
-    gpis-grasp evaluate --dataset DIR --out DIR [--methods gp-g,gp-m,gp-p] [--lambda 2] [--alpha 0.5]
+    gpis-grasp evaluate --dataset DIR --out DIR [--methods gp-gpis-opt,gp-m,gp-p] [--lambda 2] [--alpha 0.5]
                         [--seeds 1] [--executor serial|process|dask] [--workers N] [--scheduler local|tcp://HOST:PORT]
     gpis-grasp evaluate --dataset DIR --out DIR --throughput 1,2 [--executors serial,process,dask]
 
@@ -13,7 +13,7 @@ is a pure function of its task: it renders the object's scene in memory
 the GPIS exactly as the nodes do
 (:func:`~gpis_grasp_ros.tools.evaluation.tasks.fit_scene`), plans with
 :func:`~gpis_grasp_ros.core.planners.plan` and executes the grasp ``trials`` times on the TRUE
-shape with :func:`~gpis_grasp_ros.core.planners.execute_grasp_trials` (σ_g = 0.5 planning cell,
+shape with :func:`~gpis_grasp_ros.sim.execution.execute_grasp_trials` (σ_g = 0.5 planning cell,
 true centre of mass). A task carries its manifest entry, so a remote worker needs the package but no
 files (except for user-bag entries). The GPIS of an object is cached per worker process
 (``object_model``, LRU), so consecutive tasks of one object fit it once per worker.

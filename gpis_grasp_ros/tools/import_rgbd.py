@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpis_grasp_ros.core.contacts import GripperParams
+from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.noise_model import SENSOR_MODELS, SensorModel
 from gpis_grasp_ros.core.pipeline import posterior_from_grids
 from gpis_grasp_ros.core.planners import METHODS, PlannerParams, plan

@@ -24,7 +24,7 @@ def optima() -> list[tuple[str, PlanningContext, object]]:
     out = []
     for name, post in bag_posteriors().items():
         ctx = PlanningContext(post, PARAMS)
-        out += [(name, ctx, plan('gp-g', post, PARAMS, seed=s)) for s in SEEDS]
+        out += [(name, ctx, plan('gp-gpis-opt', post, PARAMS, seed=s)) for s in SEEDS]
     return out
 
 

@@ -22,8 +22,10 @@ import numpy as np
 import pytest
 
 from gpis_grasp_ros.core.contact_kernel import first_crossing, lipschitz_bounds, off_grid_crossing
-from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, find_contacts, perturb_grasps
+from gpis_grasp_ros.core.contacts import find_contacts, perturb_grasps
 from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.gripper import GripperParams
+from gpis_grasp_ros.core.sdf_bank import SdfBank
 
 
 def _reference_roots(grid: np.ndarray, px: float, py: float, ux: float, uy: float, length: float):

@@ -34,7 +34,7 @@ class Recorder:
 
 def test_stop_after_second_restart() -> None:
     rec = Recorder(stop_after=2)
-    r = plan('gp-g', POST, PARAMS, seed=2, control=rec.control())
+    r = plan('gp-gpis-opt', POST, PARAMS, seed=2, control=rec.control())
     assert not r.success and r.stopped == 'cancelled' and r.message == 'stopped: cancelled'
     assert np.all(np.isnan(r.jaw1)) and r.method == 'gp-gpis-opt'
     assert rec.calls[-1].restarts_done == 2 and rec.calls[-1].restarts_total == PARAMS.n_initial_grasps
@@ -47,8 +47,8 @@ def test_stop_after_second_restart() -> None:
 
 def test_progress_of_a_full_run_and_no_control_is_unchanged() -> None:
     rec = Recorder(stop_after=None)
-    a = plan('gp-g', POST, PARAMS, seed=3, control=rec.control())
-    b = plan('gp-g', POST, PARAMS, seed=3)
+    a = plan('gp-gpis-opt', POST, PARAMS, seed=3, control=rec.control())
+    b = plan('gp-gpis-opt', POST, PARAMS, seed=3)
     assert a.success and a.stopped == '' and b.stopped == ''
     np.testing.assert_array_equal(a.jaw1, b.jaw1)
     assert a.p_f == b.p_f
@@ -157,7 +157,8 @@ def test_stop_mid_iteration_with_many_restarts(monkeypatch: pytest.MonkeyPatch) 
         return 'timeout' if len(seen) >= 40 else None
 
     params = PlannerParams(n_shape_samples=300, n_grasp_samples=300, n_initial_grasps=200)
-    r = plan('gp-g', POST, params, seed=5, control=PlanControl(should_stop=should_stop, on_progress=progress.append))
+    control = PlanControl(should_stop=should_stop, on_progress=progress.append)
+    r = plan('gp-gpis-opt', POST, params, seed=5, control=control)
     assert r.stopped == 'timeout' and not r.success and len(seen) == 40
     # 40 polls cover the 1 + 4 evaluations of each of the 200 restarts (8 batches) and a few
     # iterations, with at most one batch of SCP_EVAL_CHUNK points (32 restarts' worth) between polls
@@ -167,8 +168,8 @@ def test_stop_mid_iteration_with_many_restarts(monkeypatch: pytest.MonkeyPatch) 
 
 def test_many_restarts_same_result_with_a_control() -> None:
     params = PlannerParams(n_shape_samples=300, n_grasp_samples=300, n_initial_grasps=40)
-    a = plan('gp-g', POST, params, seed=7, control=PlanControl())
-    b = plan('gp-g', POST, params, seed=7)
+    a = plan('gp-gpis-opt', POST, params, seed=7, control=PlanControl())
+    b = plan('gp-gpis-opt', POST, params, seed=7)
     np.testing.assert_array_equal(a.jaw1, b.jaw1)
     np.testing.assert_array_equal(a.jaw2, b.jaw2)
     assert a.p_f == b.p_f and a.objective == b.objective and a.iterations == b.iterations

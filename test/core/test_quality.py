@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, find_contacts
+from gpis_grasp_ros.core.contacts import find_contacts
 from gpis_grasp_ros.core.gpis import center_of_mass
+from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.quality import (
     contact_wrenches,
     draw_shape_samples,
@@ -20,6 +21,7 @@ from gpis_grasp_ros.core.quality import (
     probability_force_closure,
     torque_scale,
 )
+from gpis_grasp_ros.core.sdf_bank import SdfBank
 from gpis_grasp_ros.tools.bench_planners import pf_python_loop
 from synthetic_shapes import certain_rectangle_posterior, disc_sdf, make_geometry, make_posterior, rectangle_sdf
 

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from gpis_grasp_ros.core.contacts import bilinear
 from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.sdf_bank import bilinear
 from gpis_grasp_ros.core.sensing import CameraIntrinsics, SensingParams, occlusion_shadow_pixels, segment_frames
 from gpis_grasp_ros.core.table_frame import fit_table_plane
 from gpis_grasp_ros.sim.scene import CameraModel, MaterialRegion, Scene, SceneSpec

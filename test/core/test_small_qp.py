@@ -22,7 +22,7 @@ from gpis_grasp_ros.core.small_qp import (
 )
 
 
-def _random_problem(rng: np.random.Generator, n: int, m: int, quasi_newton: bool):
+def _random_problem(rng: np.random.Generator, n: int, m: int, curvature: bool):
     grad = rng.normal(0, 1, n) * 10 ** rng.uniform(-3, 1)
     jac = rng.normal(0, 1, (m, n)) * 10 ** rng.uniform(-2, 1, (m, 1))
     jac[rng.random(m) < 0.15] = 0.0  # constraints with no gradient (invalid contacts)
@@ -34,7 +34,7 @@ def _random_problem(rng: np.random.Generator, n: int, m: int, quasi_newton: bool
     at_bound = rng.random(n) < 0.2  # x at a hard bound: one side of the box is 0
     lo[at_bound] = 0.0
     hess = np.zeros((n, n))
-    if quasi_newton:
+    if curvature:
         a = rng.normal(0, 1, (n, n))
         hess = a @ a.T * 10 ** rng.uniform(-2, 1)
     rho_d = 0.1 * (np.abs(grad).max() + 0.01 * mu * np.abs(jac).sum(axis=1).max()) / s
@@ -58,14 +58,14 @@ def _full_qp(grad, hess, jac, g, mu, lo, hi, rho_d, rho_t):
     return p, q, c, b
 
 
-@pytest.mark.parametrize('quasi_newton', [False, True])
-def test_solutions_satisfy_kkt_and_match_osqp(quasi_newton: bool) -> None:
-    rng = np.random.default_rng(3 + quasi_newton)
+@pytest.mark.parametrize('curvature', [False, True])
+def test_solutions_satisfy_kkt_and_match_osqp(curvature: bool) -> None:
+    rng = np.random.default_rng(3 + curvature)
     worst_kkt = worst_osqp = 0.0
     unsolved = 0
     for _ in range(300):
         n, m = 4, int(rng.choice([3, 6]))
-        data = _random_problem(rng, n, m, quasi_newton)
+        data = _random_problem(rng, n, m, curvature)
         p, q, c, b = _full_qp(*data)
         z = np.concatenate([np.zeros(n), np.maximum(data[3], 0.0)])
         status, lam = active_set_qp(p, q, c, b, z, 200)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from test_nodes_pipeline import Loop
 
-from gpis_grasp_ros.core.contacts import bilinear
+from gpis_grasp_ros.core.sdf_bank import bilinear
 from gpis_grasp_ros.data import bagio, messages
 
 HEAD_BAG = Path(__file__).resolve().parents[2] / 'bags' / 'head' / 'E_mechanical_switch.mcap'

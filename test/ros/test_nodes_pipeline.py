@@ -19,6 +19,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 from gpis_grasp_interfaces.msg import GpisModel
 from gpis_grasp_interfaces.srv import ExecuteGrasp, GraspPlan
 from gpis_grasp_ros.core import contacts
+from gpis_grasp_ros.core.gripper import GripperParams
+from gpis_grasp_ros.core.sdf_bank import SdfBank
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
 from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
@@ -82,10 +84,10 @@ def _xyz(pose) -> np.ndarray:
 
 def _contacts_on_mean(model_msg, plan) -> contacts.Contacts:
     posterior = messages.gpis_model_to_posterior(model_msg)
-    bank = contacts.SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
+    bank = SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
     g = posterior.geometry  # jaw poses are camera-frame points: back into grid coordinates
     jaw1, jaw2 = (g.from_sensor(_xyz(p))[0] for p in (plan.jaw1, plan.jaw2))
-    return contacts.find_contacts(bank, jaw1, jaw2, contacts.GripperParams()), posterior
+    return contacts.find_contacts(bank, jaw1, jaw2, GripperParams()), posterior
 
 
 @pytest.mark.parametrize('bag', BAGS, ids=[b.stem for b in BAGS])
@@ -118,7 +120,7 @@ def test_bag_to_grasp(bag: Path):
         con, posterior = _contacts_on_mean(model, plan)
         assert bool(np.ravel(con.valid)[0]), 'the planned grasp has no contact on the mean shape'
         res = posterior.geometry.resolution
-        from gpis_grasp_ros.core.contacts import bilinear
+        from gpis_grasp_ros.core.sdf_bank import bilinear
         for c in (np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]):
             assert abs(float(bilinear(posterior.mean, posterior.geometry, c[None])[0])) <= 2 * res
         ex = loop.execute(plan, trials=10)
@@ -153,8 +155,8 @@ def test_object_a_gp_gpis_opt_beats_gp_m_and_avoids_the_transparent_part(loop_a)
     spec = tape_dispenser()
     centre = polygon_centroid(next(r.polygon for r in spec.regions if r.kind == 'opaque'))
     scene = load_bag(next(b for b in BAGS if b.name.startswith('A_')), frames=1)
-    bank = contacts.SdfBank(scene.true_sdf[None], scene.true_geometry)
-    con = contacts.find_contacts(bank, _xy(opt.jaw1), _xy(opt.jaw2), contacts.GripperParams())
+    bank = SdfBank(scene.true_sdf[None], scene.true_geometry)
+    con = contacts.find_contacts(bank, _xy(opt.jaw1), _xy(opt.jaw2), GripperParams())
     assert bool(np.ravel(con.valid)[0]), 'GP-GPIS-OPT grasp has no valid contact on the true shape'
     for c in (np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]):
         assert abs(np.linalg.norm(c - centre) - 0.037) < 0.002, 'GP-GPIS-OPT touches the transparent arm'

@@ -22,9 +22,9 @@ import pytest
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
-from gpis_grasp_ros.core.contacts import bilinear
 from gpis_grasp_ros.core.grid import quaternion_to_rotation
 from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.sdf_bank import bilinear
 from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.data.bags import load_bag

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gpis_grasp_ros.core import noise_model
-from gpis_grasp_ros.core.contacts import bilinear
+from gpis_grasp_ros.core.sdf_bank import bilinear
 from gpis_grasp_ros.data import bagio
 from gpis_grasp_ros.data import messages as cv
 from gpis_grasp_ros.sim import objects

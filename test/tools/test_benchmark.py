@@ -208,8 +208,8 @@ def _rot(tilt_deg: float, yaw_deg: float) -> tuple[float, ...]:
 
 def test_true_shape_maps_planning_grid_points_through_the_sensor_frame() -> None:
     """Head camera: the truth grid and the planning grid share the table plane but not the in-plane axes."""
-    from gpis_grasp_ros.core.contacts import GripperParams
     from gpis_grasp_ros.core.grid import GridGeometry
+    from gpis_grasp_ros.core.gripper import GripperParams
 
     true_g = GridGeometry(-0.03, -0.06, 0.001, 120, 120, z=0.8, rotation=_rot(50, 5))
     xy = true_g.cell_centers()

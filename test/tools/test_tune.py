@@ -83,7 +83,8 @@ def test_tune_command_end_to_end(tmp_path, capsys):
             '--initial-grasps', '2', '--trials', '8', '--no-progress']
     # an evaluation of GP-GPIS-OPT at the default λ (2) and α (0.5): the λ = 2 column of the tune
     evaluation = tmp_path / 'eval'
-    assert evaluate.main(['--dataset', str(data.root), '--out', str(evaluation), '--methods', 'gp-g'] + tiny) == 0
+    args = ['--dataset', str(data.root), '--out', str(evaluation), '--methods', 'gp-gpis-opt']
+    assert evaluate.main(args + tiny) == 0
     evaluated = {r['object']: r for r in read_results(evaluation)}
     assert {(r['lambda'], r['alpha']) for r in evaluated.values()} == {(2.0, 0.5)}
     capsys.readouterr()

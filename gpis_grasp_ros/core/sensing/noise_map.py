@@ -82,12 +82,11 @@ class NoiseMap(NamedTuple):
 
 def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_hull: np.ndarray,
               params: SensingParams) -> NoiseMap:
-    """SDF noise = depth + discretisation + disagreement + propagation. Unknown cells are not trained and count
+    """SDF noise = depth + disagreement + propagation. Unknown cells are not trained and count
     as object in the SDF, so the prior governs them (section III-B); a clear body's prism cells and the table
     seen through it stay trained with the disagreement variance."""
     geometry, missing, disagreement, body, behind = (cells.geometry, cells.missing, cells.disagreement, cells.body,
                                                      cells.behind)
-    res = geometry.resolution
     disagree = disagreement > params.uncertainty_threshold
     uncertain = missing | disagree
     unknown = missing.copy()
@@ -97,8 +96,7 @@ def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_h
     uncertain |= foreign
     trained_clear = behind | (body & params.train_clear_body)  # a clear body's prism, trained
     unknown |= foreign | (_extended_regions(disagree) & ~trained_clear)
-    noise = (cells.depth_var + params.discretisation_weight * res ** 2 / 12.0
-             + params.disagreement_variance_m2 * disagreement
+    noise = (cells.depth_var + params.disagreement_variance_m2 * disagreement
              + params.disagreement_variance_m2 * np.where(missing, 0.0, cells.miss_c))
     occ_bin = cells.occupancy >= 0.5
     if not occ_bin.any():

@@ -100,7 +100,6 @@ class SensingParams:
     alternative_weight: float = 0.25  # weight of (f_obj - f_free)^2 in the SDF noise
     error_correlation_length_m: float = 0.01  # extent over which propagated SDF errors are shared (m)
     propagation_radius_m: float = 0.03  # propagated SDF variance reaches this far from its cause (m)
-    discretisation_weight: float = 0.0  # weight of resolution^2 / 12 in the SDF noise (0 = off)
 
     def __post_init__(self) -> None:
         if self.grid_size < 3:

@@ -20,7 +20,7 @@ from geometry_msgs.msg import PointStamped
 
 from gpis_grasp_interfaces.msg import FloatGrid
 from gpis_grasp_interfaces.srv import ExecuteGrasp
-from gpis_grasp_ros.core import contacts, planners
+from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.ros import validation
 from gpis_grasp_ros.ros.nodes.common import (
@@ -34,19 +34,20 @@ from gpis_grasp_ros.ros.nodes.common import (
     run_node,
     watch_parameters,
 )
+from gpis_grasp_ros.sim.execution import execute_grasp_trials
 
 MAX_TRIALS = 100000
 #: Jaws closer than this (m) are the same point: no grasp to execute.
 MIN_JAW_SEPARATION = 1e-4
 
 
-def build_gripper(v: dict[str, Any]) -> contacts.GripperParams:
+def build_gripper(v: dict[str, Any]) -> GripperParams:
     """Parameter values → :class:`GripperParams` (ValueError names the parameter)."""
     if v['jaw_width'] >= v['max_opening']:
         raise ValueError(f"jaw_width={v['jaw_width']} m must be smaller than max_opening={v['max_opening']} m")
-    return contacts.GripperParams(jaw_width=float(v['jaw_width']), max_opening=float(v['max_opening']),
-                                  friction_coef=float(v['friction_coefficient']),
-                                  position_noise=float(v['position_noise']), contact_patch=float(v['contact_patch']))
+    return GripperParams(jaw_width=float(v['jaw_width']), max_opening=float(v['max_opening']),
+                         friction_coef=float(v['friction_coefficient']),
+                         position_noise=float(v['position_noise']), contact_patch=float(v['contact_patch']))
 
 
 class GripperSimNode(GuardedNode):
@@ -62,7 +63,7 @@ class GripperSimNode(GuardedNode):
         declare(self, 'contact_patch', 0.003, 'pad compliance (m): surface points within this distance of the first '
                 'touch share the contact (the planner uses half a GPIS cell)', low=1e-5, high=0.05)
         self.limits = validation.Limits()
-        self.gripper: contacts.GripperParams = watch_parameters(self, build_gripper, self._apply_gripper)
+        self.gripper: GripperParams = watch_parameters(self, build_gripper, self._apply_gripper)
         self._lock = threading.Lock()
         self._sdf = None
         self._geometry = None
@@ -77,7 +78,7 @@ class GripperSimNode(GuardedNode):
                     ['jaw_width', 'max_opening', 'friction_coefficient', 'position_noise'],
                     services=['execute_grasp'])
 
-    def _apply_gripper(self, gripper: contacts.GripperParams) -> None:
+    def _apply_gripper(self, gripper: GripperParams) -> None:
         self.gripper = gripper
 
     def _on_sdf(self, msg: FloatGrid) -> None:
@@ -140,8 +141,8 @@ class GripperSimNode(GuardedNode):
                                 f'(need at least {MIN_JAW_SEPARATION * 1000:g} mm)')
             return response
         seed = int(request.seed) if request.seed else None
-        successes = planners.execute_grasp_trials(true_sdf, geometry, jaws[0], jaws[1], gripper, trials,
-                                                  np.random.default_rng(seed), center_of_mass=com)
+        successes = execute_grasp_trials(true_sdf, geometry, jaws[0], jaws[1], gripper, trials,
+                                         np.random.default_rng(seed), center_of_mass=com)
         response.trials = trials
         response.successes = int(successes)
         response.success_rate = successes / trials

@@ -42,6 +42,8 @@ from gpis_grasp_interfaces.msg import GpisModel
 from gpis_grasp_interfaces.srv import GraspPlan
 from gpis_grasp_ros.core import contacts, planners
 from gpis_grasp_ros.core.blur import gpis_blur
+from gpis_grasp_ros.core.gripper import GripperParams
+from gpis_grasp_ros.core.sdf_bank import SdfBank
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.ros import conversions, validation
 from gpis_grasp_ros.ros.nodes.common import (
@@ -78,7 +80,7 @@ class PlannerConfig:
     num_grasp_samples: int
     num_shape_samples: int
     uncertainty_penalty: float
-    gripper: contacts.GripperParams
+    gripper: GripperParams
     antipodal_alpha: float
     gp_p_adaptive: bool
     planning_timeout: float
@@ -92,14 +94,16 @@ class PlannerConfig:
 
 def build_config(v: dict[str, Any]) -> PlannerConfig:
     """Parameter values → :class:`PlannerConfig`; ValueError names the offending parameter."""
-    method = planners.canonical_method(str(v['method']))
+    method = str(v['method'])
+    if method not in planners.METHODS:
+        raise ValueError(f"method={method!r} is not one of {', '.join(planners.METHODS)}")
     if v['jaw_width'] >= v['max_opening']:
         raise ValueError(f"jaw_width={v['jaw_width']} m must be smaller than max_opening={v['max_opening']} m")
     if v['min_resolution'] >= v['max_resolution']:
         raise ValueError('min_resolution must be smaller than max_resolution')
-    gripper = contacts.GripperParams(jaw_width=float(v['jaw_width']), max_opening=float(v['max_opening']),
-                                     friction_coef=float(v['friction_coefficient']),
-                                     position_noise_cells=float(v['position_noise_cells']))
+    gripper = GripperParams(jaw_width=float(v['jaw_width']), max_opening=float(v['max_opening']),
+                            friction_coef=float(v['friction_coefficient']),
+                            position_noise_cells=float(v['position_noise_cells']))
     limits = validation.Limits(max_grid_cells=int(v['max_grid_cells']), min_resolution=float(v['min_resolution']),
                                max_resolution=float(v['max_resolution']))
     return PlannerConfig(method=method, num_initial_grasps=int(v['num_initial_grasps']),
@@ -246,9 +250,8 @@ class PlannerNode(GuardedNode):
     def _make_job(self, method_field: str, n_field: int, lam_field: float, seed_field: int) -> PlanJob | str:
         """Validate a request (service or goal) → a job, or the reason it is rejected."""
         config = self.config
-        try:
-            method = planners.canonical_method((method_field or config.method).strip().lower())
-        except ValueError:
+        method = (method_field or config.method).strip().lower()
+        if method not in planners.METHODS:
             return f"unknown method '{method_field}'; valid: {', '.join(planners.METHODS)}"
         sampling = method in SAMPLING_METHODS
         default_n = config.num_grasp_samples if sampling else config.num_initial_grasps
@@ -474,8 +477,8 @@ class PlannerNode(GuardedNode):
     def _publish_visuals(self, result, job: PlanJob) -> None:
         posterior, header = job.posterior, job.model.header
         jaw_width = job.config.gripper.jaw_width
-        bank = contacts.SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
-        con = contacts.find_contacts(bank, result.jaw1, result.jaw2, contacts.GripperParams(jaw_width=jaw_width),
+        bank = SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
+        con = contacts.find_contacts(bank, result.jaw1, result.jaw2, GripperParams(jaw_width=jaw_width),
                                      check_opening=False)
         touches = np.stack([np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]])
         if not bool(np.ravel(con.valid)[0]):

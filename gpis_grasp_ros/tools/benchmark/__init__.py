@@ -22,7 +22,7 @@ the default successive halving. Recorded per object × method × seed (``results
   true shape. A grasp without contact, with a jaw starting inside the true object or wider than
   w_g has no Q_N (NaN, reason in ``q_n_status``; counted as 0 in the tables' means);
 * ``sim_successes`` of ``sim_trials`` executions by the simulated gripper on the true shape
-  (:func:`~gpis_grasp_ros.core.planners.execute_grasp_trials`, σ_g = 0.5 planning cell, true COM);
+  (:func:`~gpis_grasp_ros.sim.execution.execute_grasp_trials`, σ_g = 0.5 planning cell, true COM);
 * ``planning_time_s`` (time to choose the grasp, what the paper's runtime columns report) and
   ``evaluation_time_s`` (the final P_F estimate);
 * ``converged`` (the chosen restart met the SCP convergence test), ``restarts`` and

@@ -15,7 +15,7 @@ given three *predictions* of its success probability and an *outcome*:
 
 The outcome is the success rate of ``calibration_trials`` (≥ 50 in the study) simulated
 executions on the bag's ground-truth shape
-(:func:`~gpis_grasp_ros.core.planners.execute_grasp_trials`, σ_g = 0.5 planning cell, the
+(:func:`~gpis_grasp_ros.sim.execution.execute_grasp_trials`, σ_g = 0.5 planning cell, the
 simulated gripper of ``gripper_sim_node``).
 
 **Candidate choice.** K/2 heuristic candidates (GP-P's generator,
@@ -56,8 +56,9 @@ from typing import Any
 
 import numpy as np
 
-from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, find_contacts, perturb_grasps
+from gpis_grasp_ros.core.contacts import find_contacts, perturb_grasps
 from gpis_grasp_ros.core.gpis import GpisPosterior, center_of_mass
+from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.planners import (
     MeanGraspObjective,
     PlannerParams,
@@ -65,6 +66,7 @@ from gpis_grasp_ros.core.planners import (
     sample_heuristic_grasps,
 )
 from gpis_grasp_ros.core.quality import ShapeSamples, draw_shape_samples, grasp_quality, probability_force_closure
+from gpis_grasp_ros.core.sdf_bank import SdfBank
 
 #: The three predictors: column of the calibration rows, label for tables and figures.
 PREDICTORS: tuple[tuple[str, str], ...] = (

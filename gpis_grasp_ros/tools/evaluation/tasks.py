@@ -183,9 +183,11 @@ def make_tasks(entries: Sequence[dict[str, Any]], methods: Sequence[str], seeds:
                lambdas: Sequence[float | None] = (None,), alphas: Sequence[float | None] = (None,),
                settings: EvalSettings = EvalSettings()) -> list[Task]:
     """All combinations, object-major (consecutive tasks share an object and its cached GPIS)."""
-    from gpis_grasp_ros.core.planners import canonical_method
+    from gpis_grasp_ros.core.planners import METHODS
 
-    methods = [canonical_method(m) for m in methods]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown grasp planner(s) {', '.join(unknown)}; valid names: {', '.join(METHODS)}")
     return [Task(e, m, int(s), lam, a, settings) for e in entries for s in seeds for m in methods
             for lam in lambdas for a in alphas]
 

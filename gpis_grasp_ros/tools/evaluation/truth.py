@@ -7,11 +7,13 @@ import math
 import cv2
 import numpy as np
 
-from gpis_grasp_ros.core.contacts import GripperParams, SdfBank, bilinear, find_contacts
+from gpis_grasp_ros.core.contacts import find_contacts
 from gpis_grasp_ros.core.gpis import center_of_mass
 from gpis_grasp_ros.core.grid import GridGeometry
-from gpis_grasp_ros.core.planners import execute_grasp_trials
+from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.quality import ferrari_canny_l1, torque_scale
+from gpis_grasp_ros.core.sdf_bank import SdfBank, bilinear
+from gpis_grasp_ros.sim.execution import execute_grasp_trials
 
 
 class TrueShape:

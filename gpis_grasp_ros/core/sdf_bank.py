@@ -1,0 +1,291 @@
+"""Stacks of SDF grids prepared for batched bilinear lookups (the shape model the jaws close on).
+
+Each grid is padded with extrapolated nodes (``f(nearest node) + distance``: the border is free space and a
+distance grows at most by the distance travelled) so jaws may start off the grid. The 4 bilinear coefficients of
+a cell are stored as one record so a lookup is a single gather; a per-thread workspace reuses large temporaries.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from gpis_grasp_ros.core.contact_kernel import border_positive, lipschitz_bounds
+from gpis_grasp_ros.core.grid import GridGeometry
+
+#: An SDF gradient norm (dimensionless; 1 for an exact SDF) at or below this defines no normal:
+#: the contact is flagged ``no_normal`` (invalid) instead of being given an arbitrary direction.
+MIN_GRADIENT_NORM = 1e-6
+
+
+def _coefficient_records(grids: np.ndarray, dtype: type = np.float32) -> np.ndarray:
+    """Per-cell bilinear coefficients of grids ``(B, H, W)`` as records ``(B*H*W, 4)`` of ``dtype``.
+
+    Inside cell (i, j) — corners (i, j)..(i+1, j+1) — ``f = a + b·fx + c·fy + d·fx·fy`` with
+    ``fx, fy ∈ [0, 1]`` the fractional column and row offsets. The last row and column of cells
+    are degenerate (they only interpolate along the grid's border), so a point exactly on the
+    far border needs no index clamping; the row stride is W.
+    """
+    f = np.asarray(grids)
+    out = np.zeros(f.shape + (4,), dtype=dtype)
+    out[..., 0] = f
+    out[:, :, :-1, 1] = f[:, :, 1:] - f[:, :, :-1]
+    out[:, :-1, :, 2] = f[:, 1:, :] - f[:, :-1, :]
+    out[:, :-1, :-1, 3] = f[:, 1:, 1:] - f[:, 1:, :-1] - f[:, :-1, 1:] + f[:, :-1, :-1]
+    return out.reshape(-1, 4)
+
+
+def _pad_extrapolated(grids: np.ndarray, pad: int, resolution: float) -> np.ndarray:
+    """Grids ``(B, H, W)`` padded by ``pad`` nodes per side with ``f(nearest node) + distance``."""
+    _, h, w = grids.shape
+    ii = np.arange(-pad, h + pad)
+    jj = np.arange(-pad, w + pad)
+    ic = np.clip(ii, 0, h - 1)
+    jc = np.clip(jj, 0, w - 1)
+    dist = np.hypot((ii - ic)[:, None], (jj - jc)[None, :]) * resolution
+    return grids[:, ic[:, None], jc[None, :]] + dist[None]
+
+
+def _bilinear_combine(rec: np.ndarray, fx: np.ndarray, fy: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """k0 + k1 fx + (k2 + k3 fx) fy from gathered coefficients ``rec[..., 0:4]``, in place (fx is overwritten)."""
+    np.multiply(rec[..., 3], fx, out=out)
+    out += rec[..., 2]
+    out *= fy
+    np.multiply(rec[..., 1], fx, out=fx)
+    out += fx
+    out += rec[..., 0]
+    return out
+
+
+class _Workspace(threading.local):
+    """Per-thread scratch arrays reused between chunks (avoids re-faulting fresh large temporaries)."""
+
+    max_arrays = 96
+
+    def __init__(self) -> None:
+        self.arrays: dict[tuple, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype: type = np.float64) -> np.ndarray:
+        key = (name, shape, np.dtype(dtype).char)
+        arr = self.arrays.get(key)
+        if arr is None:
+            if len(self.arrays) >= self.max_arrays:
+                self.arrays.clear()
+            arr = self.arrays[key] = np.empty(shape, dtype=dtype)
+        return arr
+
+
+WORKSPACE = _Workspace()
+
+#: One record of 4 coefficients as a single numpy element: float32 x 4 = complex128, float64 x 4 = 2 x complex128.
+_RECORD = {'f': np.dtype(np.complex128), 'd': np.dtype((np.void, 32))}
+
+
+def gather_records(rec: np.ndarray, flat: np.ndarray, dtype: np.dtype, name: str) -> np.ndarray:
+    """Gather coefficient records at ``flat`` → (..., 4) view of ``dtype`` (per-thread scratch)."""
+    out = WORKSPACE.get(name, flat.shape, rec.dtype)
+    np.take(rec, flat, out=out)
+    return out.view(dtype).reshape(flat.shape + (4,))
+
+
+class SdfBank:
+    """A stack of ``B`` SDF grids (m) on one geometry, prepared for batched bilinear lookups.
+
+    ``gradients`` (B, H, W, 2) holds ∂f/∂x, ∂f/∂y (dimensionless); by default central finite
+    differences of each grid (the right normals for Monte-Carlo samples). Pass the GPIS
+    posterior's analytic gradient for the mean shape.
+
+    Values are interpolated from grids padded by ``pad_cells`` extrapolated nodes per side
+    (``f(nearest node) + distance``), so jaws a few cells off the grid need no clamping; farther
+    points are clamped to the padded grid and the remaining distance is added. Coefficients are
+    stored in ``dtype`` (float32 by default: a 1000-sample bank of a 25 x 25 grid takes ~42 MB
+    with the gradient coefficients; SDF round-off ~1e-8 m) for the vectorised numpy path;
+    ``padded`` and ``gradient_grids`` keep float64 copies for the compiled kernel (another ~21 MB
+    for that bank). ``sdfs`` keeps the float64 grids. Read-only after construction (safe to share
+    between threads; the Lipschitz bounds are computed once on first use).
+    """
+
+    def __init__(self, sdfs: np.ndarray, geometry: GridGeometry, gradients: np.ndarray | None = None,
+                 pad_cells: int = 6, dtype: type = np.float32) -> None:
+        sdfs = np.asarray(sdfs, dtype=np.float64)
+        if sdfs.ndim == 2:
+            sdfs = sdfs[None]
+        if sdfs.ndim != 3 or sdfs.shape[1:] != geometry.shape:
+            raise ValueError(f'SDF grids must have shape (B, {geometry.height}, {geometry.width}), got {sdfs.shape}')
+        if geometry.height < 2 or geometry.width < 2:
+            raise ValueError('contact finding needs a grid of at least 2 x 2 cells')
+        self.geometry = geometry
+        self.sdfs = sdfs
+        self.n = sdfs.shape[0]
+        res = geometry.resolution
+        if gradients is None:
+            gy, gx = np.gradient(sdfs, res, axis=(1, 2))
+        else:
+            gradients = np.asarray(gradients, dtype=np.float64)
+            if gradients.ndim == 3:
+                gradients = gradients[None]
+            if gradients.shape != sdfs.shape + (2,):
+                raise ValueError(f'gradients must have shape {sdfs.shape + (2,)}, got {gradients.shape}')
+            gx, gy = gradients[..., 0], gradients[..., 1]
+        self.pad = int(pad_cells)
+        self._pw = geometry.width + 2 * self.pad
+        self._ph = geometry.height + 2 * self.pad
+        # Array-of-structures: the 4 coefficients of a cell are adjacent and gathered as one record
+        # (a 16-byte element for float32), ~1.5x faster than 4 gathers when lookups miss the cache.
+        self._coef_dtype = np.dtype(dtype)
+        record = _RECORD[self._coef_dtype.char]
+        #: float64 padded grids (B, Hp, Wp) read by the compiled kernel (:mod:`contact_kernel`)
+        self.padded = np.ascontiguousarray(_pad_extrapolated(sdfs, self.pad, res))
+        self._lipschitz: np.ndarray | None = None
+        self._border_positive: np.ndarray | None = None
+        self._coef_rec = _coefficient_records(self.padded, dtype).view(record).reshape(-1)
+        self._cells_padded = self._ph * self._pw
+        self._float_index_exact = self.n * self._cells_padded < 2 ** 24
+        self._grad_rec = tuple(_coefficient_records(gc, dtype).view(record).reshape(-1) for gc in (gx, gy))
+        #: float64 gradient grids (B, H, W, 2) read by the compiled normals (:func:`contact_kernel.unit_normals`)
+        self.gradient_grids = np.ascontiguousarray(np.stack([gx, gy], axis=-1), dtype=np.float64)
+        self._cells_per_grid = geometry.height * geometry.width
+
+    @property
+    def border_positive(self) -> np.ndarray:
+        """(B,) bool: every border node of the padded grid is > 0, so the extrapolated SDF has no zero
+        off the padded grid and the compiled kernel walks lines that leave it only over the grid
+        (:func:`contact_kernel.border_positive`; computed on first use)."""
+        if self._border_positive is None:
+            self._border_positive = border_positive(self.padded)
+        return self._border_positive
+
+    @property
+    def lipschitz(self) -> np.ndarray:
+        """(B,) bounds (m per cell) on the gradient norm of each padded grid's bilinear interpolant
+        (computed on first use; :func:`contact_kernel.lipschitz_bounds`)."""
+        if self._lipschitz is None:
+            self._lipschitz = lipschitz_bounds(self.padded)
+        return self._lipschitz
+
+    def _locate(self, u: np.ndarray, v: np.ndarray, index: np.ndarray | None):
+        """Flat cell index and fractional offsets of unpadded cell coordinates (clamped to the grid)."""
+        g = self.geometry
+        uc = np.clip(u, 0.0, g.width - 1.0)
+        vc = np.clip(v, 0.0, g.height - 1.0)
+        j0 = uc.astype(np.intp)
+        i0 = vc.astype(np.intp)
+        fx = uc - j0
+        fy = vc - i0
+        flat = i0 * g.width
+        flat += j0
+        if index is not None:
+            flat += np.asarray(index, dtype=np.intp) * self._cells_per_grid
+        return flat, fx, fy
+
+    def values_cells(self, u: np.ndarray, v: np.ndarray, index: np.ndarray | None = None,
+                     on_padded_grid: bool | None = None, scratch: bool = False) -> np.ndarray:
+        """SDF (m) at fractional cell coordinates ``u`` (col), ``v`` (row), extrapolated off-grid.
+
+        ``index`` (broadcastable to ``u``) selects the grid of the bank; ``None`` means grid 0.
+        ``on_padded_grid`` may assert that every point lies on the padded grid (skips the check);
+        ``scratch=True`` returns a per-thread scratch array overwritten by the next such call.
+        """
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        p = self.pad
+        wp1, hp1 = self._pw - 1.0, self._ph - 1.0
+        shape = np.broadcast_shapes(u.shape, v.shape)
+        ws = WORKSPACE
+        up = np.add(u, p, out=ws.get('up', shape))
+        vp = np.add(v, p, out=ws.get('vp', shape))
+        if on_padded_grid is None:
+            on_padded_grid = up.size == 0 or bool(up.min() >= 0.0 and vp.min() >= 0.0
+                                                  and up.max() <= wp1 and vp.max() <= hp1)
+        extra = None
+        if not on_padded_grid:
+            uc = np.clip(up, 0.0, wp1)
+            vc = np.clip(vp, 0.0, hp1)
+            extra = np.hypot(up - uc, vp - vc) * self.geometry.resolution
+            up, vp = uc, vc
+        j0 = ws.get('j0', shape, np.intp)
+        np.copyto(j0, up, casting='unsafe')  # truncation = floor for non-negative coordinates
+        i0 = ws.get('i0', shape, np.intp)
+        np.copyto(i0, vp, casting='unsafe')
+        fx = np.subtract(up, j0, out=ws.get('fx', shape))
+        fy = np.subtract(vp, i0, out=ws.get('fy', shape))
+        i0 *= self._pw
+        i0 += j0
+        if index is not None:
+            i0 += np.asarray(index, dtype=np.intp) * self._cells_padded
+        rec = gather_records(self._coef_rec, i0, self._coef_dtype, 'rec')
+        out = _bilinear_combine(rec, fx, fy, ws.get('val', shape) if scratch else np.empty(shape))
+        if extra is not None:
+            out += extra
+        return out
+
+    def _values_padded32(self, up: np.ndarray, vp: np.ndarray, offset: np.ndarray | None,
+                         tag: str = '') -> np.ndarray:
+        """Hot path of the march: float32 *padded* cell coordinates, all on the padded grid (>= 0).
+
+        ``offset`` is the grid index times the cells per padded grid (broadcastable). Returns a
+        per-thread float32 scratch array (named by ``tag``).
+        """
+        shape = up.shape
+        ws = WORKSPACE
+        fu = np.floor(up, out=ws.get('fu' + tag, shape, np.float32))
+        fv = np.floor(vp, out=ws.get('fv' + tag, shape, np.float32))
+        fx = np.subtract(up, fu, out=ws.get('fx32' + tag, shape, np.float32))
+        fy = np.subtract(vp, fv, out=ws.get('fy32' + tag, shape, np.float32))
+        fv *= self._pw
+        fv += fu
+        flat = ws.get('flat' + tag, shape, np.intp)
+        if offset is not None and self._float_index_exact:
+            fv += np.asarray(offset, dtype=np.float32)  # cell index < 2**24: exact in float32
+            np.copyto(flat, fv, casting='unsafe')
+        else:
+            np.copyto(flat, fv, casting='unsafe')
+            if offset is not None:
+                flat += offset
+        rec = gather_records(self._coef_rec, flat, self._coef_dtype, 'rec32' + tag)
+        return _bilinear_combine(rec, fx, fy, ws.get('val32' + tag, shape, self._coef_dtype))
+
+    def values(self, xy: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
+        """SDF (m) at metric points ``(..., 2)``."""
+        uv = self.geometry.to_cell(xy)
+        return self.values_cells(uv[..., 0], uv[..., 1], index)
+
+    def gradients_at(self, xy: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
+        """Bilinearly interpolated SDF gradient ``(..., 2)`` at metric points (clamped to the grid)."""
+        uv = self.geometry.to_cell(xy)
+        flat, fx, fy = self._locate(uv[..., 0], uv[..., 1], index)
+        out = np.empty(flat.shape + (2,))
+        for k in range(2):
+            rec = gather_records(self._grad_rec[k], flat, self._coef_dtype, 'grad')
+            out[..., k] = rec[..., 0] + fx * rec[..., 1] + fy * (rec[..., 2] + fx * rec[..., 3])
+        return out
+
+    def normals_at(self, xy: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
+        """Unit outward normals ``(..., 2)`` (normalised gradient); zero where the gradient vanishes
+        (‖∇f‖ <= :data:`MIN_GRADIENT_NORM`)."""
+        grad = self.gradients_at(xy, index)
+        norm = np.sqrt(grad[..., 0] ** 2 + grad[..., 1] ** 2)[..., None]
+        ok = norm > MIN_GRADIENT_NORM
+        grad /= np.where(ok, norm, 1.0)
+        grad *= ok
+        return grad
+
+
+def bilinear(grid: np.ndarray, geometry: GridGeometry, xy: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of one ``(H, W)`` grid at metric points ``(..., 2)`` (clamped to the grid)."""
+    grid = np.asarray(grid, dtype=np.float64)
+    uv = geometry.to_cell(xy)
+    h, w = geometry.shape
+    u = np.clip(uv[..., 0], 0.0, w - 1.0)
+    v = np.clip(uv[..., 1], 0.0, h - 1.0)
+    j0 = np.minimum(u.astype(np.intp), max(w - 2, 0))
+    i0 = np.minimum(v.astype(np.intp), max(h - 2, 0))
+    j1 = np.minimum(j0 + 1, w - 1)
+    i1 = np.minimum(i0 + 1, h - 1)
+    fx = u - j0
+    fy = v - i0
+    top = grid[i0, j0] * (1 - fx) + grid[i0, j1] * fx
+    bottom = grid[i1, j0] * (1 - fx) + grid[i1, j1] * fx
+    return top * (1 - fy) + bottom * fy
+
