@@ -1,31 +1,23 @@
-"""Shared rclpy plumbing for the nodes: QoS profiles, declared parameters that apply at run time,
-the guarded callbacks, the start-up line and the main() idiom with a graceful shutdown.
+"""Shared rclpy plumbing for the nodes: QoS profiles, the guarded callbacks, the start-up line and
+the main() of every node.
 
-* **Parameters** (:func:`declare`, :func:`watch_parameters`): every parameter has a descriptor with
-  its description, its numeric range (``FloatingPointRange``/``IntegerRange``, enforced by rclpy on
-  every set) and, for string choices, the allowed values (enforced here). A node builds its
-  configuration from the parameter values with one function that raises ``ValueError`` on invalid
-  values; that function runs at start-up (a bad value ends the process with one line, exit 2) and
-  again on every ``ros2 param set`` (rejected with the same reason, otherwise applied to the next
-  message/request). Parameters that cannot change at run time are declared read-only.
-* **Shutdown** (:func:`run_node`): SIGINT and SIGTERM are handled by the node, not by rclpy's
-  default handler, so that in-flight service calls and action goals are answered
-  ("shutting down") before the context goes away; the process exits 0 within about 1 s.
+* **Parameters** are declared from each node's table (:mod:`gpis_grasp_ros.ros.params`).
+* **Shutdown** (:func:`run_node`): the rclpy idiom - ``rclpy.init``, spin, ``KeyboardInterrupt`` /
+  ``ExternalShutdownException``, destroy, ``rclpy.try_shutdown`` - with rclpy's own signal handlers.
+  When a signal shuts the context down, :class:`GuardedNode` stops taking work at once (a context
+  shutdown callback) and in-flight service calls and action goals are answered "shutting down"
+  before the node is destroyed; the process exits 0.
 """
 
 from __future__ import annotations
 
-import os
-import signal
 import sys
 import threading
 import time
-import traceback
-from collections.abc import Callable, Iterable, Sequence
-from typing import Any, NoReturn
+from collections.abc import Callable, Iterable
+from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import InvalidHandle, ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
@@ -36,7 +28,6 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
-from rclpy.signals import SignalHandlerOptions
 
 #: Latched grids and models (like nav2 map_server): late subscribers get the last sample.
 LATCHED_QOS = QoSProfile(
@@ -77,83 +68,6 @@ def sensor_qos(reliability: str) -> QoSProfile:
     raise ValueError(f"input_reliability must be 'best_effort' or 'reliable', got '{reliability}'")
 
 
-def _choices_of(node: Node) -> dict[str, tuple[str, ...]]:
-    choices = getattr(node, '_gg_param_choices', None)
-    if choices is None:
-        choices = {}
-        node._gg_param_choices = choices
-    return choices
-
-
-def declare(node: Node, name: str, default: Any, description: str, *,
-            low: float | int | None = None, high: float | int | None = None,
-            choices: Sequence[str] | None = None, read_only: bool = False) -> Any:
-    """Declare a parameter with a :class:`ParameterDescriptor` (description, enforced range, choices)
-    and return its value. A value outside the choices raises ValueError (also on every later set,
-    see :func:`watch_parameters`)."""
-    descriptor = ParameterDescriptor(description=description, read_only=read_only)
-    if choices:
-        descriptor.additional_constraints = 'one of: ' + ', '.join(choices)
-        _choices_of(node)[name] = tuple(choices)
-    if low is not None and high is not None:
-        if isinstance(default, bool):
-            pass
-        elif isinstance(default, int):
-            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=0)]
-        elif isinstance(default, float):
-            descriptor.floating_point_range = [
-                FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
-    value = node.declare_parameter(name, default, descriptor).value
-    check_choice(node, name, value)
-    return value
-
-
-def check_choice(node: Node, name: str, value: Any) -> None:
-    """ValueError when ``value`` is not one of the declared choices of parameter ``name``."""
-    allowed = _choices_of(node).get(name)
-    if allowed and value not in allowed:
-        raise ValueError(f"parameter '{name}' must be one of {list(allowed)}, got '{value}'")
-
-
-def parameter_values(node: Node) -> dict[str, Any]:
-    """Current values of all parameters of ``node`` (name → value)."""
-    return {name: p.value for name, p in node._parameters.items()}
-
-
-def watch_parameters(node: Node, build: Callable[[dict[str, Any]], Any], apply: Callable[[Any], None]) -> Any:
-    """Build the node's configuration from its parameters now and again after every accepted set.
-
-    ``build(values)`` turns parameter values (name → value) into a configuration object and raises
-    ValueError on invalid values; ``apply(config)`` installs it (called with the start-up
-    configuration before this returns). A set that ``build`` rejects, or a string outside its
-    declared choices, fails with the reason (``ros2 param set`` prints it) and changes nothing.
-    Range, type and read-only are enforced by rclpy from the descriptors before this runs.
-    Returns the start-up configuration.
-    """
-    config = build(parameter_values(node))
-    apply(config)
-
-    def on_set(params: list) -> SetParametersResult:
-        values = parameter_values(node)
-        values.update({p.name: p.value for p in params})
-        try:
-            for p in params:
-                check_choice(node, p.name, p.value)
-            build(values)
-        except (ValueError, TypeError) as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        return SetParametersResult(successful=True)
-
-    def post_set(params: list) -> None:
-        apply(build(parameter_values(node)))
-        changed = ', '.join(f'{p.name}={p.value!r}' for p in params)
-        node.get_logger().info(f'parameters applied: {changed}')
-
-    node.add_on_set_parameters_callback(on_set)
-    node.add_post_set_parameters_callback(post_set)
-    return config
-
-
 def log_startup(node: Node, inputs: Iterable[str], outputs: Iterable[str], key_parameters: Iterable[str],
                 services: Iterable[str] = (), actions: Iterable[str] = ()) -> None:
     """One start-up line: resolved inputs, outputs, services/actions and the key parameter values."""
@@ -182,6 +96,8 @@ class GuardedNode(Node):
         self.executor_threads = 4
         #: Messages rejected by validation since start-up (each logged as a warning).
         self.rejected = 0
+        # a signal (rclpy's handler) or rclpy.shutdown() ends the context: stop taking work at once
+        self.context.on_shutdown(self.begin_shutdown)
 
     def reject(self, text: str) -> None:
         """Log a rejected message (warning naming the field) and count it."""
@@ -271,78 +187,32 @@ def guarded_service(node: Node, what: str, callback: Callable[[Any, Any], Any]) 
 SHUTDOWN_GRACE = 0.6
 
 
-def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> NoReturn:
-    """main() of every node: init, spin a multi-threaded executor, graceful shutdown.
+def run_node(node_class: Callable[[], GuardedNode], args: list[str] | None = None) -> int:
+    """main() of every node: init, spin a multi-threaded executor, answer what is in flight, shut down.
 
-    A bad parameter value at start-up ends the process with a one-line error (exit code 2)
-    instead of a stack trace. SIGINT/SIGTERM: the node stops taking work
-    (:meth:`GuardedNode.begin_shutdown`), in-flight requests are answered within
-    :data:`SHUTDOWN_GRACE` s, then the node and context are destroyed and the process exits 0
-    (``os._exit``: this is the process's main function, never call it from a test).
+    SIGINT/SIGTERM are rclpy's: they shut the context down, the node stops taking work
+    (:meth:`GuardedNode.begin_shutdown`) and in-flight requests are answered "shutting down" within
+    :data:`SHUTDOWN_GRACE` s before the node is destroyed. A bad parameter value at start-up ends the
+    process with a one-line error (exit code 2) instead of a stack trace. Returns the exit code.
     """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-
-    def on_signal(_signum: int, _frame: Any) -> None:
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    if {signal.SIGINT, signal.SIGTERM} <= signal.pthread_sigmask(signal.SIG_BLOCK, []):
-        # blocked in every thread (see gpis_grasp_ros.ros.nodes): take them here, no handler can swallow them
-        def wait_signal() -> None:
-            signal.sigwait({signal.SIGINT, signal.SIGTERM})
-            stop.set()
-        threading.Thread(target=wait_signal, name='signals', daemon=True).start()
+    rclpy.init(args=args)
     node = None
-    executor = None
-    spinner = None
     status = 0
     try:
-        node = factory()
-        executor = MultiThreadedExecutor(num_threads=max(threads, getattr(node, 'executor_threads', threads)))
+        node = node_class()
+        executor = MultiThreadedExecutor(num_threads=node.executor_threads)
         executor.add_node(node)
-
-        def spin() -> None:
-            try:
-                executor.spin()
-            except (KeyboardInterrupt, ExternalShutdownException):
-                pass
-            finally:
-                stop.set()
-
-        spinner = threading.Thread(target=spin, name='executor', daemon=True)
-        spinner.start()
-        while not stop.wait(0.2):
-            pass
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException) as exc:
         print(f'error: {exc}', file=sys.stderr)
         status = 2
-    except Exception:  # noqa: BLE001 - reported, then the same clean exit path
-        traceback.print_exc()
-        status = 1
     finally:
         if node is not None:
-            if isinstance(node, GuardedNode):
-                node.begin_shutdown()
-                node.wait_idle(SHUTDOWN_GRACE)
-                time.sleep(0.05)  # let the executor send the last responses
-        if executor is not None:
-            executor.shutdown(timeout_sec=0.1)
-        if node is not None:
-            try:
-                node.destroy_node()
-            except InvalidHandle:
-                pass
+            node.begin_shutdown()
+            node.wait_idle(SHUTDOWN_GRACE)
+            time.sleep(0.05)  # the executor sends the last responses after their callbacks returned
+            node.destroy_node()
         rclpy.try_shutdown()
-        if spinner is not None:
-            spinner.join(timeout=0.1)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    # Everything that had to be answered was answered and ROS is shut down. Do not wait for a
-    # callback still computing (e.g. a GPIS fit) nor for the interpreter's slow teardown of the
-    # numeric and DDS libraries (seconds on a loaded machine): exit now.
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(status)
+    return status
