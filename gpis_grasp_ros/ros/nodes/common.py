@@ -3,14 +3,15 @@ the main() of every node.
 
 * **Parameters** are declared from each node's table (:mod:`gpis_grasp_ros.ros.params`).
 * **Shutdown** (:func:`run_node`): the rclpy idiom - ``rclpy.init``, spin, ``KeyboardInterrupt`` /
-  ``ExternalShutdownException``, destroy, ``rclpy.try_shutdown`` - with rclpy's own signal handlers.
-  When a signal shuts the context down, :class:`GuardedNode` stops taking work at once (a context
-  shutdown callback) and in-flight service calls and action goals are answered "shutting down"
-  before the node is destroyed; the process exits 0.
+  ``ExternalShutdownException``, destroy, ``rclpy.try_shutdown``. On SIGINT/SIGTERM in-flight
+  service calls and action goals are answered "shutting down" before the node is destroyed and
+  the context shut down; the process exits 0. Planning runs in the node's worker threads, so the
+  main thread is always free to take the signal.
 """
 
 from __future__ import annotations
 
+import signal
 import sys
 import threading
 import time
@@ -28,6 +29,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+from rclpy.signals import SignalHandlerOptions
 
 #: Latched grids and models (like nav2 map_server): late subscribers get the last sample.
 LATCHED_QOS = QoSProfile(
@@ -96,7 +98,7 @@ class GuardedNode(Node):
         self.executor_threads = 4
         #: Messages rejected by validation since start-up (each logged as a warning).
         self.rejected = 0
-        # a signal (rclpy's handler) or rclpy.shutdown() ends the context: stop taking work at once
+        # rclpy.shutdown() (e.g. by whoever owns the context) ends the work too
         self.context.on_shutdown(self.begin_shutdown)
 
     def reject(self, text: str) -> None:
@@ -185,24 +187,31 @@ def guarded_service(node: Node, what: str, callback: Callable[[Any, Any], Any]) 
 
 #: Seconds given to in-flight requests to be answered after SIGINT/SIGTERM.
 SHUTDOWN_GRACE = 0.6
+#: Longest the main thread waits in the executor before Python looks at pending signals (s).
+SIGNAL_LATENCY = 0.1
 
 
 def run_node(node_class: Callable[[], GuardedNode], args: list[str] | None = None) -> int:
     """main() of every node: init, spin a multi-threaded executor, answer what is in flight, shut down.
 
-    SIGINT/SIGTERM are rclpy's: they shut the context down, the node stops taking work
-    (:meth:`GuardedNode.begin_shutdown`) and in-flight requests are answered "shutting down" within
-    :data:`SHUTDOWN_GRACE` s before the node is destroyed. A bad parameter value at start-up ends the
-    process with a one-line error (exit code 2) instead of a stack trace. Returns the exit code.
+    SIGINT and SIGTERM raise ``KeyboardInterrupt`` in the spinning main thread (Python's handler;
+    rclpy's is not installed because it shuts the context down at once, and an action goal in
+    flight could then not be answered: its status is published). The node stops taking work
+    (:meth:`GuardedNode.begin_shutdown`), in-flight requests are answered "shutting down" within
+    :data:`SHUTDOWN_GRACE` s, then the node is destroyed and the context shut down. A bad parameter
+    value at start-up ends the process with a one-line error (exit code 2) instead of a stack
+    trace. Returns the exit code.
     """
-    rclpy.init(args=args)
-    node = None
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends the node like Ctrl-C
+    node = executor = None
     status = 0
     try:
         node = node_class()
         executor = MultiThreadedExecutor(num_threads=node.executor_threads)
         executor.add_node(node)
-        executor.spin()
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=SIGNAL_LATENCY)  # back in Python this often: signals are taken
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException) as exc:
@@ -211,8 +220,23 @@ def run_node(node_class: Callable[[], GuardedNode], args: list[str] | None = Non
     finally:
         if node is not None:
             node.begin_shutdown()
-            node.wait_idle(SHUTDOWN_GRACE)
-            time.sleep(0.05)  # the executor sends the last responses after their callbacks returned
+            if executor is not None:
+                _answer_in_flight(executor, node)
             node.destroy_node()
         rclpy.try_shutdown()
     return status
+
+
+def _answer_in_flight(executor: MultiThreadedExecutor, node: GuardedNode, settle: float = 0.1) -> None:
+    """Keep spinning until the node's callbacks in progress returned (at most :data:`SHUTDOWN_GRACE` s) and
+    ``settle`` s more: the executor sends their answers (service responses, action results) afterwards."""
+    end = time.monotonic() + SHUTDOWN_GRACE
+    idle_since = None
+    while rclpy.ok() and time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.02)
+        if not node.wait_idle(0.0):
+            idle_since = None
+        elif idle_since is None:
+            idle_since = time.monotonic()
+        elif time.monotonic() - idle_since > settle:
+            return
