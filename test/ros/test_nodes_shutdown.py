@@ -11,7 +11,6 @@ import threading
 from pathlib import Path
 
 import pytest
-
 from rclpy.action import ActionClient
 
 from gpis_grasp_interfaces.action import PlanGrasp

@@ -89,13 +89,15 @@ def log_startup(node: Node, inputs: Iterable[str], outputs: Iterable[str], key_p
 class GuardedNode(Node):
     """A node with a shutdown flag and a count of callbacks in progress (see :func:`run_node`)."""
 
+    #: Most threads the node needs in its executor (blocking service callbacks need their own; the
+    #: executor starts them as work arrives).
+    executor_threads = 4
+
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         self.shutting_down = threading.Event()
         self._in_flight = 0
         self._in_flight_cv = threading.Condition()
-        #: Threads the node needs in its executor (blocking service callbacks need their own).
-        self.executor_threads = 4
         #: Messages rejected by validation since start-up (each logged as a warning).
         self.rejected = 0
         # rclpy.shutdown() (e.g. by whoever owns the context) ends the work too
@@ -191,7 +193,7 @@ SHUTDOWN_GRACE = 0.6
 SIGNAL_LATENCY = 0.1
 
 
-def run_node(node_class: Callable[[], GuardedNode], args: list[str] | None = None) -> int:
+def run_node(node_class: type[GuardedNode], args: list[str] | None = None) -> int:
     """main() of every node: init, spin a multi-threaded executor, answer what is in flight, shut down.
 
     SIGINT and SIGTERM raise ``KeyboardInterrupt`` in the spinning main thread (Python's handler;
@@ -207,8 +209,8 @@ def run_node(node_class: Callable[[], GuardedNode], args: list[str] | None = Non
     node = executor = None
     status = 0
     try:
+        executor = MultiThreadedExecutor(num_threads=node_class.executor_threads)
         node = node_class()
-        executor = MultiThreadedExecutor(num_threads=node.executor_threads)
         executor.add_node(node)
         while rclpy.ok():
             executor.spin_once(timeout_sec=SIGNAL_LATENCY)  # back in Python this often: signals are taken

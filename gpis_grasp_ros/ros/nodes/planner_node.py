@@ -176,11 +176,13 @@ class PlanJob:
 class PlannerNode(GuardedNode):
     """Thin ROS wrapper around :func:`gpis_grasp_ros.core.planners.plan` with a bounded request queue."""
 
+    #: one thread per waiting caller and per worker
+    executor_threads = MAX_QUEUE_LIMIT + MAX_WORKERS + 4
+
     def __init__(self, **kwargs) -> None:
         super().__init__('planner_node', **kwargs)
         self.config: PlannerConfig = PARAMETERS.watch(self, build_config, self._apply_config)
         self.workers = self.config.workers
-        self.executor_threads = MAX_QUEUE_LIMIT + self.workers + 4
 
         self._lock = threading.Lock()
         self._model: GpisModel | None = None
