@@ -1,48 +1,148 @@
-"""config/default.yaml documents exactly the parameters the nodes declare, with their defaults."""
+"""The nodes' parameter tables: what the nodes declare, config/default.yaml, the README tables, and
+how the values reach the library dataclasses."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
+import pytest
 import rclpy
 import yaml
 from rclpy.context import Context
+from rclpy.parameter import Parameter
+
+from gpis_grasp_ros.ros import params as ros_params
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / 'scripts'))
+BUILT_IN = {'use_sim_time', 'start_type_description_service'}  # rclpy's own parameters
+NODE_CLASSES = {
+    'segmentation_node': 'gpis_grasp_ros.ros.nodes.segmentation_node:SegmentationNode',
+    'gpis_node': 'gpis_grasp_ros.ros.nodes.gpis_node:GpisNode',
+    'planner_node': 'gpis_grasp_ros.ros.nodes.planner_node:PlannerNode',
+    'gripper_sim_node': 'gpis_grasp_ros.ros.nodes.gripper_sim_node:GripperSimNode',
+}
 
-from gen_default_config import node_parameters  # noqa: E402
+
+def _node_class(node: str):
+    import importlib
+    module, cls = NODE_CLASSES[node].split(':')
+    return getattr(importlib.import_module(module), cls)
 
 
-def test_default_yaml_matches_declared_parameters():
-    context = Context()
-    rclpy.init(context=context)
-    try:
-        declared = node_parameters(context)
-    finally:
-        rclpy.try_shutdown(context=context)
+@pytest.fixture
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def test_default_yaml_is_generated_from_the_tables():
+    """config/default.yaml is exactly what `python -m gpis_grasp_ros.ros.params --yaml` writes."""
+    assert (ROOT / 'config' / 'default.yaml').read_text() == ros_params.render_yaml(), \
+        'config/default.yaml is out of date: python -m gpis_grasp_ros.ros.params --yaml > config/default.yaml'
     documented = yaml.safe_load((ROOT / 'config' / 'default.yaml').read_text())
-    # '/**/node:' keys: the file applies to the nodes under any namespace
-    assert set(documented) == {f'/**/{node}' for node in declared}
-    for node, rows in declared.items():
-        values = documented[f'/**/{node}']['ros__parameters']
-        assert set(values) == {name for name, _, _ in rows}, node
-        for name, default, description in rows:
-            assert values[name] == default, f'{node}.{name}'
-            assert description, f'{node}.{name} has no description'
+    tables = ros_params.node_tables()
+    assert set(documented) == {f'/**/{node}' for node in tables}
+    for node, table in tables.items():
+        assert documented[f'/**/{node}']['ros__parameters'] == table.defaults(), node
 
 
-def test_gpis_settings_are_node_parameters():
+def test_readme_tables_are_current():
+    """The tables between the README's <!-- params:NODE --> markers are the generated ones."""
+    text = (ROOT / 'README.md').read_text()
+    present = ros_params.readme_nodes(text)
+    if not present:
+        pytest.skip('README.md has no <!-- params:NODE --> markers yet')
+    for node in present:
+        start, end = f'<!-- params:{node} -->', f'<!-- /params:{node} -->'
+        block = text[text.index(start) + len(start):text.index(end)]
+        assert block == '\n' + ros_params.render_markdown(node), \
+            f'README table of {node} is out of date: python -m gpis_grasp_ros.ros.params --update-readme README.md'
+
+
+def test_update_readme_rewrites_between_markers_and_names_missing_ones():
+    tables = ros_params.node_tables()
+    text = 'intro\n' + ''.join(f'<!-- params:{n} -->\nSTALE TABLE\n<!-- /params:{n} -->\n' for n in tables) + 'end\n'
+    out = ros_params.update_readme(text, tables)
+    assert out.startswith('intro\n') and out.endswith('end\n') and 'STALE TABLE' not in out
+    assert ros_params.update_readme(out, tables) == out  # idempotent
+    assert '| `num_initial_grasps` | integer | `20` |' in out
+    with pytest.raises(ValueError, match='params:gpis_node'):
+        ros_params.update_readme(text.replace('<!-- /params:gpis_node -->', ''), tables)
+
+
+@pytest.mark.parametrize('node', list(NODE_CLASSES))
+def test_nodes_declare_exactly_their_table(node, context):
+    """Every declared parameter comes from the table, with its default, description, range and read-only."""
+    table = ros_params.node_tables()[node]
+    instance = _node_class(node)(context=context)
+    try:
+        names = set(instance.list_parameters([], 0).names) - BUILT_IN
+        assert names == set(table.params)
+        for p in table:
+            assert instance.get_parameter(p.name).value == p.default_value(), p.name
+            d = instance.describe_parameter(p.name)
+            assert d.description.startswith(p.description) and d.read_only == p.read_only, p.name
+            if p.kind is float and p.low is not None:
+                assert (d.floating_point_range[0].from_value, d.floating_point_range[0].to_value) == (p.low, p.high)
+            if p.kind is int and p.low is not None:
+                assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (p.low, p.high)
+    finally:
+        instance.destroy_node()
+
+
+def test_defaults_come_from_the_library_dataclasses():
+    from gpis_grasp_ros.core import contacts, gpis, planners, sensing
+
+    tables = ros_params.node_tables()
+    assert tables['segmentation_node']['grid_margin'].default_value() == sensing.SensingParams().margin
+    assert tables['gpis_node']['length_scale_max_extent'].default_value() == gpis.GpisParams().length_scale_max_extent
+    assert tables['planner_node']['num_initial_grasps'].default_value() == planners.PlannerParams().n_initial_grasps
+    assert tables['planner_node']['friction_coefficient'].default_value() == contacts.GripperParams().friction_coef
+    assert tables['planner_node']['friction_coefficient'].maps_to == 'GripperParams.friction_coef'
+
+
+def test_gripper_is_one_group_in_metres(context):
+    """planner_node and gripper_sim_node share the gripper; sigma_g is in metres, negative = half a cell of the
+    grid the jaws close on (the planner's default, the paper's sigma_g^2 = 0.25 cells^2)."""
+    from gpis_grasp_ros.core import contacts
+    from gpis_grasp_ros.core.grid import GridGeometry
+    from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
+    from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
+
+    tables = ros_params.node_tables()
+    for name in ('jaw_width', 'max_opening', 'friction_coefficient'):
+        assert tables['planner_node'][name] == tables['gripper_sim_node'][name]
+    opening = tables['planner_node']['max_opening'].default_value()
+    assert tables['segmentation_node']['max_opening'].default_value() == opening
+    planner = PlannerNode(context=context)
+    sim = GripperSimNode(context=context)
+    try:
+        g = planner.config.gripper
+        assert g == contacts.GripperParams(jaw_width=0.01, max_opening=0.09, friction_coef=0.5,
+                                           position_noise_cells=0.5)
+        geometry = GridGeometry(0.0, 0.0, 0.004, 25, 25, 0.7, 'cam')
+        assert g.sigma_g(geometry) == 0.5 * 0.004 and g.patch_cells(geometry) == 0.5
+        assert sim.gripper == contacts.GripperParams(jaw_width=0.01, max_opening=0.09, friction_coef=0.5,
+                                                     position_noise=0.003, contact_patch=0.003)
+        assert planner.set_parameters([Parameter('position_noise', value=0.002)])[0].successful
+        assert planner.config.gripper.sigma_g(geometry) == 0.002
+        zero_patch = sim.set_parameters([Parameter('contact_patch', value=0.0)])[0]
+        assert not zero_patch.successful and 'contact patch' in zero_patch.reason
+        assert not sim.set_parameters([Parameter('position_noise', value=0.5)])[0].successful
+        assert sim.gripper.position_noise == 0.003
+    finally:
+        planner.destroy_node()
+        sim.destroy_node()
+
+
+def test_gpis_settings_are_node_parameters(context):
     """The GPIS settings a user tunes for their objects are gpis_node parameters, set at run time
     (`ros2 param set`), mapped onto GpisParams (0 = off where documented) and range-checked."""
-    from rclpy.parameter import Parameter
-
     from gpis_grasp_ros.core import gpis
     from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
 
-    context = Context()
-    rclpy.init(context=context)
     node = GpisNode(context=context)
     try:
         d = gpis.GpisParams()
@@ -62,44 +162,36 @@ def test_gpis_settings_are_node_parameters():
         bad = node.set_parameters([Parameter('length_scale_min_cells', value=0.0)])[0]
         assert not bad.successful
         assert node.params.length_scale_min_cells == d.length_scale_min_cells
+        assert not node.set_parameters([Parameter('optimize_hyperparameters', value=1.5)])[0].successful  # type
+        assert node.set_parameters([Parameter('max_resolution', value=0.01)])[0].successful
+        inconsistent = node.set_parameters([Parameter('min_resolution', value=0.05)])[0]
+        assert not inconsistent.successful and 'min_resolution' in inconsistent.reason
+        assert node.config.limits.min_resolution == 1e-4
     finally:
         node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
-def test_perception_model_switches_are_segmentation_parameters():
-    """The clear-body extension and the unknown-cell model are segmentation_node parameters mapped onto
-    SensingParams at run time; out-of-range values are refused and leave the settings unchanged."""
-    from rclpy.parameter import Parameter
-
+def test_perception_settings_are_segmentation_parameters(context):
+    """The clear-body settings a user tunes are segmentation_node parameters mapped onto SensingParams at run
+    time; out-of-range values are refused and leave the settings unchanged. The perception ablation switches
+    stay in the library (SensingParams) and are not node parameters."""
     from gpis_grasp_ros.core import sensing
     from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
 
-    context = Context()
-    rclpy.init(context=context)
     node = SegmentationNode(context=context)
     try:
         d = sensing.SensingParams()
+        for name in ('see_through_test', 'shadow_test', 'clear_body_prism', 'train_clear_body', 'exclude_uncertain',
+                     'color_smooth_px', 'color_hole_margin_px', 'transparent_core_occupied'):
+            assert not node.has_parameter(name), name
+        assert (node.params.see_through_test, node.params.shadow_test, node.params.clear_body_prism,
+                node.params.train_clear_body) == (d.see_through_test, d.shadow_test, d.clear_body_prism,
+                                                  d.train_clear_body)
         assert node.params.chroma_z_min == d.chroma_z_min
-        ok = node.set_parameters([Parameter('chroma_z_min', value=0.0)])[0]
-        assert ok.successful, ok.reason
+        assert node.set_parameters([Parameter('chroma_z_min', value=0.0)])[0].successful
         assert node.params.chroma_z_min == 0.0
         assert not node.set_parameters([Parameter('chroma_z_min', value=-1.0)])[0].successful
         assert node.params.chroma_z_min == 0.0
-        assert (node.params.clear_body_prism, node.params.train_clear_body) == (True, True) == (
-            d.clear_body_prism, d.train_clear_body)
-        ok = node.set_parameters([Parameter('clear_body_prism', value=False),
-                                  Parameter('train_clear_body', value=False)])
-        assert all(r.successful for r in ok)
-        assert (node.params.clear_body_prism, node.params.train_clear_body) == (False, False)
-        assert not node.set_parameters([Parameter('clear_body_prism', value=1.5)])[0].successful  # wrong type
-        assert node.params.clear_body_prism is False
-        assert node.params.see_through_test is True is d.see_through_test
-        assert node.set_parameters([Parameter('see_through_test', value=False)])[0].successful
-        assert node.params.see_through_test is False
-        assert node.params.shadow_test is True is d.shadow_test
-        assert node.set_parameters([Parameter('shadow_test', value=False)])[0].successful
-        assert node.params.shadow_test is False
         assert node.params.sensor.occluder_x_m == 0.075  # carmine's projector (sensor_model is read-only)
         assert node.params.clear_body_height_m == 0.0 == d.clear_body_height_m  # the priors
         assert node.set_parameters([Parameter('clear_body_height', value=0.061)])[0].successful
@@ -107,6 +199,10 @@ def test_perception_model_switches_are_segmentation_parameters():
         for bad in (-0.01, 0.5):  # below 0, above max_object_height_m
             assert not node.set_parameters([Parameter('clear_body_height', value=bad)])[0].successful
         assert node.params.clear_body_height_m == 0.061
+        assert node.params.table_plane is None and node.params.target_point is None
+        short = node.set_parameters([Parameter('roi_px', value=[1.0, 2.0])])[0]
+        assert not short.successful and 'roi_px' in short.reason
+        assert node.set_parameters([Parameter('target', value='pixel'), Parameter('target_point', value=[3.0, 4.0])])
+        assert node.params.target_point == (3.0, 4.0)
     finally:
         node.destroy_node()
-        rclpy.try_shutdown(context=context)

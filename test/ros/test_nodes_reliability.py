@@ -242,7 +242,7 @@ def test_parameters_apply_at_run_time_or_are_rejected_with_the_reason(model_msg)
         ok = node.set_parameters([Parameter('method', value='gp-m'), Parameter('planning_timeout', value=0.5),
                                   Parameter('uncertainty_penalty', value=3.0)])[0]
         assert ok.successful
-        assert (node.config.method, node.config.planning_timeout, node.config.uncertainty_penalty) == \
+        assert (node.config.method, node.config.planning_timeout, node.config.planner.uncertainty_penalty) == \
             ('gp-m', 0.5, 3.0)
         # ... and the next request uses them
         g.model_pub.publish(model_msg)
@@ -250,6 +250,12 @@ def test_parameters_apply_at_run_time_or_are_rejected_with_the_reason(model_msg)
         assert g.call(seed=1).method == 'gp-m'
     finally:
         g.close()
+
+
+def _parameter_values(node) -> dict:
+    """Every parameter of ``node`` (built-ins included), as ``ros2 param dump`` lists them."""
+    names = node.list_parameters([], 0).names
+    return {name: p.value for name, p in zip(names, node.get_parameters(names), strict=True)}
 
 
 def test_dumped_parameters_reload_into_a_fresh_node(tmp_path):
@@ -264,7 +270,7 @@ def test_dumped_parameters_reload_into_a_fresh_node(tmp_path):
         rclpy.init(context=ctx)
         try:
             node = cls(context=ctx)
-            values = {name: p.value for name, p in node._parameters.items()}
+            values = _parameter_values(node)
             name = node.get_name()
             node.destroy_node()
         finally:
@@ -276,7 +282,7 @@ def test_dumped_parameters_reload_into_a_fresh_node(tmp_path):
         rclpy.init(context=ctx, args=['--ros-args', '--params-file', str(path)])
         try:
             fresh = cls(context=ctx)
-            assert {n: p.value for n, p in fresh._parameters.items()} == values
+            assert _parameter_values(fresh) == values
             fresh.destroy_node()
         finally:
             rclpy.try_shutdown(context=ctx)

@@ -11,7 +11,9 @@ import threading
 from pathlib import Path
 
 import pytest
+from rclpy.action import ActionClient
 
+from gpis_grasp_interfaces.action import PlanGrasp
 from gpis_grasp_interfaces.msg import GpisModel
 from gpis_grasp_interfaces.srv import GraspPlan
 from gpis_grasp_ros.data import messages
@@ -61,6 +63,38 @@ def test_signal_during_a_plan_answers_the_caller_and_exits_cleanly(sig):
         assert '[ERROR]' not in log and 'Traceback' not in log, log
         res = answer['res']
         assert not res.success and 'shutting down' in res.message
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        ros.close()
+
+
+def test_sigint_during_an_action_goal_aborts_it_with_the_reason():
+    ros = RosHarness()
+    proc = _start('planner_node', ros.domain_id, '-p', 'num_shape_samples:=100000')
+    try:
+        probe = ros.node('probe')
+        pub = probe.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
+        post, _ = posterior_from_scene(load_bag(next((ROOT / 'bags').glob('H_*.mcap')), frames=3))
+        pub.publish(messages.posterior_to_gpis_model(post, messages.header(F, 1, 'cam'), F))
+        client = ActionClient(probe, PlanGrasp, 'plan_grasp')
+        assert client.wait_for_server(timeout_sec=30.0)
+        lines: list[str] = []
+        reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, '')), daemon=True)
+        reader.start()
+        assert wait_for(lambda: any('GPIS received' in ln for ln in lines), 30.0)
+        sent = client.send_goal_async(PlanGrasp.Goal(method='gp-gpis-opt', num_initial_grasps=1000, seed=1))
+        assert wait_for(sent.done, 30.0) and sent.result().accepted
+        result = sent.result().get_result_async()
+        wait_for(lambda: False, 1.0)  # the plan is running
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=30)
+        reader.join(timeout=5)
+        log = ''.join(lines)
+        assert code == 0, log
+        assert '[ERROR]' not in log and 'Traceback' not in log, log
+        assert wait_for(result.done, 10.0), log
+        assert not result.result().result.success and 'shutting down' in result.result().result.message
     finally:
         if proc.poll() is None:
             proc.kill()

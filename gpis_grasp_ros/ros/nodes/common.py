@@ -1,31 +1,24 @@
-"""Shared rclpy plumbing for the nodes: QoS profiles, declared parameters that apply at run time,
-the guarded callbacks, the start-up line and the main() idiom with a graceful shutdown.
+"""Shared rclpy plumbing for the nodes: QoS profiles, the guarded callbacks, the start-up line and
+the main() of every node.
 
-* **Parameters** (:func:`declare`, :func:`watch_parameters`): every parameter has a descriptor with
-  its description, its numeric range (``FloatingPointRange``/``IntegerRange``, enforced by rclpy on
-  every set) and, for string choices, the allowed values (enforced here). A node builds its
-  configuration from the parameter values with one function that raises ``ValueError`` on invalid
-  values; that function runs at start-up (a bad value ends the process with one line, exit 2) and
-  again on every ``ros2 param set`` (rejected with the same reason, otherwise applied to the next
-  message/request). Parameters that cannot change at run time are declared read-only.
-* **Shutdown** (:func:`run_node`): SIGINT and SIGTERM are handled by the node, not by rclpy's
-  default handler, so that in-flight service calls and action goals are answered
-  ("shutting down") before the context goes away; the process exits 0 within about 1 s.
+* **Parameters** are declared from each node's table (:mod:`gpis_grasp_ros.ros.params`).
+* **Shutdown** (:func:`run_node`): the rclpy idiom - ``rclpy.init``, spin, ``KeyboardInterrupt`` /
+  ``ExternalShutdownException``, destroy, ``rclpy.try_shutdown``. On SIGINT/SIGTERM in-flight
+  service calls and action goals are answered "shutting down" before the node is destroyed and
+  the context shut down; the process exits 0. Planning runs in the node's worker threads, so the
+  main thread is always free to take the signal.
 """
 
 from __future__ import annotations
 
-import os
 import signal
 import sys
 import threading
 import time
-import traceback
-from collections.abc import Callable, Iterable, Sequence
-from typing import Any, NoReturn
+from collections.abc import Callable, Iterable
+from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import InvalidHandle, ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
@@ -77,83 +70,6 @@ def sensor_qos(reliability: str) -> QoSProfile:
     raise ValueError(f"input_reliability must be 'best_effort' or 'reliable', got '{reliability}'")
 
 
-def _choices_of(node: Node) -> dict[str, tuple[str, ...]]:
-    choices = getattr(node, '_gg_param_choices', None)
-    if choices is None:
-        choices = {}
-        node._gg_param_choices = choices
-    return choices
-
-
-def declare(node: Node, name: str, default: Any, description: str, *,
-            low: float | int | None = None, high: float | int | None = None,
-            choices: Sequence[str] | None = None, read_only: bool = False) -> Any:
-    """Declare a parameter with a :class:`ParameterDescriptor` (description, enforced range, choices)
-    and return its value. A value outside the choices raises ValueError (also on every later set,
-    see :func:`watch_parameters`)."""
-    descriptor = ParameterDescriptor(description=description, read_only=read_only)
-    if choices:
-        descriptor.additional_constraints = 'one of: ' + ', '.join(choices)
-        _choices_of(node)[name] = tuple(choices)
-    if low is not None and high is not None:
-        if isinstance(default, bool):
-            pass
-        elif isinstance(default, int):
-            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=0)]
-        elif isinstance(default, float):
-            descriptor.floating_point_range = [
-                FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
-    value = node.declare_parameter(name, default, descriptor).value
-    check_choice(node, name, value)
-    return value
-
-
-def check_choice(node: Node, name: str, value: Any) -> None:
-    """ValueError when ``value`` is not one of the declared choices of parameter ``name``."""
-    allowed = _choices_of(node).get(name)
-    if allowed and value not in allowed:
-        raise ValueError(f"parameter '{name}' must be one of {list(allowed)}, got '{value}'")
-
-
-def parameter_values(node: Node) -> dict[str, Any]:
-    """Current values of all parameters of ``node`` (name → value)."""
-    return {name: p.value for name, p in node._parameters.items()}
-
-
-def watch_parameters(node: Node, build: Callable[[dict[str, Any]], Any], apply: Callable[[Any], None]) -> Any:
-    """Build the node's configuration from its parameters now and again after every accepted set.
-
-    ``build(values)`` turns parameter values (name → value) into a configuration object and raises
-    ValueError on invalid values; ``apply(config)`` installs it (called with the start-up
-    configuration before this returns). A set that ``build`` rejects, or a string outside its
-    declared choices, fails with the reason (``ros2 param set`` prints it) and changes nothing.
-    Range, type and read-only are enforced by rclpy from the descriptors before this runs.
-    Returns the start-up configuration.
-    """
-    config = build(parameter_values(node))
-    apply(config)
-
-    def on_set(params: list) -> SetParametersResult:
-        values = parameter_values(node)
-        values.update({p.name: p.value for p in params})
-        try:
-            for p in params:
-                check_choice(node, p.name, p.value)
-            build(values)
-        except (ValueError, TypeError) as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        return SetParametersResult(successful=True)
-
-    def post_set(params: list) -> None:
-        apply(build(parameter_values(node)))
-        changed = ', '.join(f'{p.name}={p.value!r}' for p in params)
-        node.get_logger().info(f'parameters applied: {changed}')
-
-    node.add_on_set_parameters_callback(on_set)
-    node.add_post_set_parameters_callback(post_set)
-    return config
-
-
 def log_startup(node: Node, inputs: Iterable[str], outputs: Iterable[str], key_parameters: Iterable[str],
                 services: Iterable[str] = (), actions: Iterable[str] = ()) -> None:
     """One start-up line: resolved inputs, outputs, services/actions and the key parameter values."""
@@ -173,15 +89,19 @@ def log_startup(node: Node, inputs: Iterable[str], outputs: Iterable[str], key_p
 class GuardedNode(Node):
     """A node with a shutdown flag and a count of callbacks in progress (see :func:`run_node`)."""
 
+    #: Most threads the node needs in its executor (blocking service callbacks need their own; the
+    #: executor starts them as work arrives).
+    executor_threads = 4
+
     def __init__(self, name: str, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         self.shutting_down = threading.Event()
         self._in_flight = 0
         self._in_flight_cv = threading.Condition()
-        #: Threads the node needs in its executor (blocking service callbacks need their own).
-        self.executor_threads = 4
         #: Messages rejected by validation since start-up (each logged as a warning).
         self.rejected = 0
+        # rclpy.shutdown() (e.g. by whoever owns the context) ends the work too
+        self.context.on_shutdown(self.begin_shutdown)
 
     def reject(self, text: str) -> None:
         """Log a rejected message (warning naming the field) and count it."""
@@ -269,80 +189,56 @@ def guarded_service(node: Node, what: str, callback: Callable[[Any, Any], Any]) 
 
 #: Seconds given to in-flight requests to be answered after SIGINT/SIGTERM.
 SHUTDOWN_GRACE = 0.6
+#: Longest the main thread waits in the executor before Python looks at pending signals (s).
+SIGNAL_LATENCY = 0.1
 
 
-def run_node(factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> NoReturn:
-    """main() of every node: init, spin a multi-threaded executor, graceful shutdown.
+def run_node(node_class: type[GuardedNode], args: list[str] | None = None) -> int:
+    """main() of every node: init, spin a multi-threaded executor, answer what is in flight, shut down.
 
-    A bad parameter value at start-up ends the process with a one-line error (exit code 2)
-    instead of a stack trace. SIGINT/SIGTERM: the node stops taking work
-    (:meth:`GuardedNode.begin_shutdown`), in-flight requests are answered within
-    :data:`SHUTDOWN_GRACE` s, then the node and context are destroyed and the process exits 0
-    (``os._exit``: this is the process's main function, never call it from a test).
+    SIGINT and SIGTERM raise ``KeyboardInterrupt`` in the spinning main thread (Python's handler;
+    rclpy's is not installed because it shuts the context down at once, and an action goal in
+    flight could then not be answered: its status is published). The node stops taking work
+    (:meth:`GuardedNode.begin_shutdown`), in-flight requests are answered "shutting down" within
+    :data:`SHUTDOWN_GRACE` s, then the node is destroyed and the context shut down. A bad parameter
+    value at start-up ends the process with a one-line error (exit code 2) instead of a stack
+    trace. Returns the exit code.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-
-    def on_signal(_signum: int, _frame: Any) -> None:
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    if {signal.SIGINT, signal.SIGTERM} <= signal.pthread_sigmask(signal.SIG_BLOCK, []):
-        # blocked in every thread (see gpis_grasp_ros.ros.nodes): take them here, no handler can swallow them
-        def wait_signal() -> None:
-            signal.sigwait({signal.SIGINT, signal.SIGTERM})
-            stop.set()
-        threading.Thread(target=wait_signal, name='signals', daemon=True).start()
-    node = None
-    executor = None
-    spinner = None
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends the node like Ctrl-C
+    node = executor = None
     status = 0
     try:
-        node = factory()
-        executor = MultiThreadedExecutor(num_threads=max(threads, getattr(node, 'executor_threads', threads)))
+        executor = MultiThreadedExecutor(num_threads=node_class.executor_threads)
+        node = node_class()
         executor.add_node(node)
-
-        def spin() -> None:
-            try:
-                executor.spin()
-            except (KeyboardInterrupt, ExternalShutdownException):
-                pass
-            finally:
-                stop.set()
-
-        spinner = threading.Thread(target=spin, name='executor', daemon=True)
-        spinner.start()
-        while not stop.wait(0.2):
-            pass
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=SIGNAL_LATENCY)  # back in Python this often: signals are taken
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException) as exc:
         print(f'error: {exc}', file=sys.stderr)
         status = 2
-    except Exception:  # noqa: BLE001 - reported, then the same clean exit path
-        traceback.print_exc()
-        status = 1
     finally:
         if node is not None:
-            if isinstance(node, GuardedNode):
-                node.begin_shutdown()
-                node.wait_idle(SHUTDOWN_GRACE)
-                time.sleep(0.05)  # let the executor send the last responses
-        if executor is not None:
-            executor.shutdown(timeout_sec=0.1)
-        if node is not None:
-            try:
-                node.destroy_node()
-            except InvalidHandle:
-                pass
+            node.begin_shutdown()
+            if executor is not None:
+                _answer_in_flight(executor, node)
+            node.destroy_node()
         rclpy.try_shutdown()
-        if spinner is not None:
-            spinner.join(timeout=0.1)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    # Everything that had to be answered was answered and ROS is shut down. Do not wait for a
-    # callback still computing (e.g. a GPIS fit) nor for the interpreter's slow teardown of the
-    # numeric and DDS libraries (seconds on a loaded machine): exit now.
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(status)
+    return status
+
+
+def _answer_in_flight(executor: MultiThreadedExecutor, node: GuardedNode, settle: float = 0.1) -> None:
+    """Keep spinning until the node's callbacks in progress returned (at most :data:`SHUTDOWN_GRACE` s) and
+    ``settle`` s more: the executor sends their answers (service responses, action results) afterwards."""
+    end = time.monotonic() + SHUTDOWN_GRACE
+    idle_since = None
+    while rclpy.ok() and time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.02)
+        if not node.wait_idle(0.0):
+            idle_since = None
+        elif idle_since is None:
+            idle_since = time.monotonic()
+        elif time.monotonic() - idle_since > settle:
+            return

@@ -16,8 +16,9 @@ height 0, ``gpis/model`` is published again with the height (same fit, no refit)
 
 from __future__ import annotations
 
+import sys
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -33,12 +34,12 @@ from gpis_grasp_ros.ros import conversions, validation
 from gpis_grasp_ros.ros.nodes.common import (
     LATCHED_QOS,
     GuardedNode,
-    declare,
     guarded,
     log_startup,
     run_node,
-    watch_parameters,
 )
+from gpis_grasp_ros.ros.nodes.shared_params import check_resolutions, grid_limits
+from gpis_grasp_ros.ros.params import ZERO_IS_NONE, Param, ParamTable
 
 #: Largest per-cell noise variance accepted on object/noise_map (m^2; a 1 m standard deviation).
 MAX_NOISE_VARIANCE = 1.0
@@ -50,31 +51,48 @@ MAX_OBJECT_HEIGHT = 1.0
 class GpisNodeConfig:
     """gpis_node parameters in effect."""
 
-    params: gpis.GpisParams
-    blur_samples: int
-    blur_upsample: int
-    stamp_tolerance: float
-    limits: validation.Limits
+    params: gpis.GpisParams = field(default_factory=gpis.GpisParams)
+    blur_samples: int = 1000  # GPIS-Blur shape samples (paper: 1000)
+    blur_upsample: int = 8  # GPIS-Blur image pixels per grid cell
+    stamp_tolerance: float = 0.0  # s between the stamps of a paired occupancy and noise map
+    limits: validation.Limits = field(default_factory=validation.Limits)
+
+
+_GP = gpis.GpisParams
+PARAMETERS = ParamTable('gpis_node', [
+    Param('prior_mean', float, 'constant prior mean of the SDF; negative biases unobserved cells to object', _GP,
+          unit='m', low=-1.0, high=0.0),
+    Param('optimize_hyperparameters', bool, 'fit C and l by maximum marginal likelihood', _GP),
+    Param('signal_variance', float, 'kernel scale C used when not optimising (0 = data-driven default)', _GP,
+          unit='m^2', low=0.0, high=1.0, rule=ZERO_IS_NONE),
+    Param('length_scale', float, 'kernel bandwidth l used when not optimising (0 = data-driven default)', _GP,
+          unit='m', low=0.0, high=10.0, rule=ZERO_IS_NONE),
+    Param('gradient_observations', bool, 'also train on the SDF gradient (derivative observations, paper '
+          'section III)', _GP),
+    Param('gradient_noise_variance', float, 'noise variance g0 of one central-difference SDF gradient component',
+          _GP, low=0.0, high=10.0),
+    Param('search_band_cells', float, 'hyperparameter search on training cells with |SDF| <= this many cells '
+          '(0 = all cells)', _GP, unit='cells', low=0.0, high=1000.0, rule=ZERO_IS_NONE),
+    Param('length_scale_min_cells', float, 'lower bound of the ML length scale l', _GP, unit='cells',
+          low=0.1, high=100.0),
+    Param('length_scale_max_extent', float, 'upper bound of l as a fraction of the grid extent', _GP,
+          low=0.01, high=10.0),
+    Param('length_scale_max_thickness', float, "upper bound of l as a multiple of the object's largest inscribed "
+          'radius (0 = no bound)', _GP, low=0.0, high=100.0, rule=ZERO_IS_NONE),
+    Param('blur_samples', int, 'GPIS-Blur: number of shape samples (paper: 1000)', GpisNodeConfig,
+          low=1, high=100000),
+    Param('blur_upsample', int, 'GPIS-Blur: image pixels per grid cell', GpisNodeConfig, low=1, high=64),
+    Param('stamp_tolerance', float, 'max stamp difference between occupancy and noise map to pair them',
+          GpisNodeConfig, unit='s', low=0.0, high=10.0),
+    *grid_limits('input', 40000, '; the GP fit needs about 8 n^2 bytes for n training cells'),
+], checks=[check_resolutions])
 
 
 def build_config(v: dict[str, Any]) -> GpisNodeConfig:
     """Parameter values → :class:`GpisNodeConfig` (ValueError names the parameter)."""
-    if v['min_resolution'] >= v['max_resolution']:
-        raise ValueError('min_resolution must be smaller than max_resolution')
-    params = gpis.GpisParams(prior_mean=float(v['prior_mean']),
-                             optimize_hyperparameters=bool(v['optimize_hyperparameters']),
-                             signal_variance=float(v['signal_variance']) or None,
-                             length_scale=float(v['length_scale']) or None,
-                             gradient_observations=bool(v['gradient_observations']),
-                             gradient_noise_variance=float(v['gradient_noise_variance']),
-                             search_band_cells=float(v['search_band_cells']) or None,
-                             length_scale_min_cells=float(v['length_scale_min_cells']),
-                             length_scale_max_extent=float(v['length_scale_max_extent']),
-                             length_scale_max_thickness=float(v['length_scale_max_thickness']) or None)
-    limits = validation.Limits(max_grid_cells=int(v['max_grid_cells']), min_resolution=float(v['min_resolution']),
-                               max_resolution=float(v['max_resolution']))
-    return GpisNodeConfig(params=params, blur_samples=int(v['blur_samples']), blur_upsample=int(v['blur_upsample']),
-                          stamp_tolerance=float(v['stamp_tolerance']), limits=limits)
+    return GpisNodeConfig(params=gpis.GpisParams(**PARAMETERS.kwargs(v, gpis.GpisParams)),
+                          limits=validation.Limits(**PARAMETERS.kwargs(v, validation.Limits)),
+                          **PARAMETERS.kwargs(v, GpisNodeConfig))
 
 
 def grid_mismatch(a, b) -> str | None:
@@ -98,40 +116,7 @@ class GpisNode(GuardedNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('gpis_node', **kwargs)
-        d = gpis.GpisParams()
-        declare(self, 'prior_mean', float(d.prior_mean),
-                'constant prior mean of the SDF (m); negative biases unobserved cells to object', low=-1.0, high=0.0)
-        declare(self, 'optimize_hyperparameters', bool(d.optimize_hyperparameters),
-                'fit C and l by maximum marginal likelihood')
-        declare(self, 'signal_variance', float(d.signal_variance or 0.0),
-                'kernel scale C (m^2) used when not optimising (0 = data-driven default)', low=0.0, high=1.0)
-        declare(self, 'length_scale', float(d.length_scale or 0.0),
-                'kernel bandwidth l (m) used when not optimising (0 = data-driven default)', low=0.0, high=10.0)
-        declare(self, 'gradient_observations', bool(d.gradient_observations),
-                'also train on the SDF gradient (derivative observations, paper section III)')
-        declare(self, 'gradient_noise_variance', float(d.gradient_noise_variance),
-                'noise variance g0 of one central-difference SDF gradient component (dimensionless)',
-                low=0.0, high=10.0)
-        declare(self, 'search_band_cells', float(d.search_band_cells or 0.0),
-                'hyperparameter search on training cells with |SDF| <= this many cells (0 = all cells)',
-                low=0.0, high=1000.0)
-        declare(self, 'length_scale_min_cells', float(d.length_scale_min_cells),
-                'lower bound of the ML length scale l (grid cells)', low=0.1, high=100.0)
-        declare(self, 'length_scale_max_extent', float(d.length_scale_max_extent),
-                'upper bound of l as a fraction of the grid extent', low=0.01, high=10.0)
-        declare(self, 'length_scale_max_thickness', float(d.length_scale_max_thickness or 0.0),
-                'upper bound of l as a multiple of the object\'s largest inscribed radius (0 = no bound)',
-                low=0.0, high=100.0)
-        declare(self, 'blur_samples', 1000, 'GPIS-Blur: number of shape samples (paper: 1000)', low=1, high=100000)
-        declare(self, 'blur_upsample', 8, 'GPIS-Blur: image pixels per grid cell', low=1, high=64)
-        declare(self, 'stamp_tolerance', 0.0,
-                'max stamp difference (s) between occupancy and noise map to pair them', low=0.0, high=10.0)
-        lim = validation.Limits()
-        declare(self, 'max_grid_cells', lim.max_grid_cells, 'largest input grid accepted (cells); the GP fit needs '
-                'about 8 n^2 bytes for n training cells', low=16, high=40000)
-        declare(self, 'min_resolution', lim.min_resolution, 'smallest input cell size accepted (m)', low=1e-6, high=0.1)
-        declare(self, 'max_resolution', lim.max_resolution, 'largest input cell size accepted (m)', low=1e-3, high=10.0)
-        self.config: GpisNodeConfig = watch_parameters(self, build_config, self._apply_config)
+        self.config: GpisNodeConfig = PARAMETERS.watch(self, build_config, self._apply_config)
         self._occupancy: OccupancyGrid | None = None
         self._noise: FloatGrid | None = None
         self._last_pair = None
@@ -290,4 +275,4 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

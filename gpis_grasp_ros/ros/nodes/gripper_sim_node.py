@@ -12,6 +12,7 @@ are executed on tilted ground truth (head-camera bags) correctly.
 
 from __future__ import annotations
 
+import sys
 import threading
 from typing import Any
 
@@ -27,13 +28,13 @@ from gpis_grasp_ros.ros.nodes.common import (
     LATCHED_QOS,
     SERVICE_QOS,
     GuardedNode,
-    declare,
     guarded,
     guarded_service,
     log_startup,
     run_node,
-    watch_parameters,
 )
+from gpis_grasp_ros.ros.nodes.shared_params import check_gripper, gripper_params
+from gpis_grasp_ros.ros.params import ParamTable
 from gpis_grasp_ros.sim.execution import execute_grasp_trials
 
 MAX_TRIALS = 100000
@@ -41,13 +42,15 @@ MAX_TRIALS = 100000
 MIN_JAW_SEPARATION = 1e-4
 
 
+#: The simulated gripper: the planner's, with fixed lengths for its positioning noise and pad compliance.
+PARAMETERS = ParamTable('gripper_sim_node', gripper_params(
+    ('jaw_width', 'max_opening', 'friction_coefficient', 'position_noise', 'contact_patch'),
+    position_noise=0.003, contact_patch=0.003), checks=[check_gripper])
+
+
 def build_gripper(v: dict[str, Any]) -> GripperParams:
     """Parameter values → :class:`GripperParams` (ValueError names the parameter)."""
-    if v['jaw_width'] >= v['max_opening']:
-        raise ValueError(f"jaw_width={v['jaw_width']} m must be smaller than max_opening={v['max_opening']} m")
-    return GripperParams(jaw_width=float(v['jaw_width']), max_opening=float(v['max_opening']),
-                         friction_coef=float(v['friction_coefficient']),
-                         position_noise=float(v['position_noise']), contact_patch=float(v['contact_patch']))
+    return GripperParams(**PARAMETERS.kwargs(v, GripperParams))
 
 
 class GripperSimNode(GuardedNode):
@@ -55,15 +58,8 @@ class GripperSimNode(GuardedNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('gripper_sim_node', **kwargs)
-        declare(self, 'jaw_width', 0.01, 'w_j: width of each jaw face (m)', low=0.0, high=0.2)
-        declare(self, 'max_opening', 0.09, 'w_g: maximum jaw opening (m)', low=0.005, high=0.5)
-        declare(self, 'friction_coefficient', 0.5, 'gamma: Coulomb friction coefficient', low=0.0, high=5.0)
-        declare(self, 'position_noise', 0.003, 'sigma_g: std of the jaw positioning error (m) per axis',
-                low=0.0, high=0.1)
-        declare(self, 'contact_patch', 0.003, 'pad compliance (m): surface points within this distance of the first '
-                'touch share the contact (the planner uses half a GPIS cell)', low=1e-5, high=0.05)
         self.limits = validation.Limits()
-        self.gripper: GripperParams = watch_parameters(self, build_gripper, self._apply_gripper)
+        self.gripper: GripperParams = PARAMETERS.watch(self, build_gripper, self._apply_gripper)
         self._lock = threading.Lock()
         self._sdf = None
         self._geometry = None
@@ -156,4 +152,4 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import collections
 import math
+import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -51,13 +52,19 @@ from gpis_grasp_ros.ros.nodes.common import (
     SERVICE_QOS,
     SHUTTING_DOWN,
     GuardedNode,
-    declare,
     guarded,
     guarded_service,
     log_startup,
     run_node,
-    watch_parameters,
 )
+from gpis_grasp_ros.ros.nodes.shared_params import (
+    GRIPPER,
+    check_gripper,
+    check_resolutions,
+    grid_limits,
+    gripper_params,
+)
+from gpis_grasp_ros.ros.params import Param, ParamTable
 from gpis_grasp_ros.viz import images as viz
 
 MAX_INITIAL_GRASPS = 1000
@@ -73,46 +80,71 @@ LAMBDA_RANGE = (0.0, 1000.0)
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    """The planner_node parameters in effect (built and validated by :func:`build_config`)."""
+    """The planner_node parameters in effect (built and validated by :func:`build_config`).
 
-    method: str
-    num_initial_grasps: int
-    num_grasp_samples: int
-    num_shape_samples: int
-    uncertainty_penalty: float
-    gripper: GripperParams
-    antipodal_alpha: float
-    gp_p_adaptive: bool
-    planning_timeout: float
-    image_scale: int
-    max_queue: int
-    limits: validation.Limits
+    ``planner`` holds the request defaults (N_g, K, λ); a request's own values replace them.
+    """
+
+    planner: planners.PlannerParams = field(default_factory=planners.PlannerParams)
+    method: str = 'gp-gpis-opt'  # used when a request leaves method empty
+    planning_timeout: float = 60.0  # s of planning after which a request is stopped
+    image_scale: int = 16  # pixels per grid cell of grasp/image
+    max_queue: int = 32  # requests that may wait for a worker
+    workers: int = 1  # planning threads
+    limits: validation.Limits = field(default_factory=validation.Limits)
     grasp_height: float = -1.0  # m above the table; negative = automatic (conversions.grasp_height_for)
     object_height: float = 0.0  # m, for the automatic grasp height; 0 = unknown
     jaw_height: float = conversions.DEFAULT_JAW_HEIGHT  # m, jaw pad height along the approach
 
+    @property
+    def gripper(self) -> GripperParams:
+        return self.planner.gripper
+
+
+_PP = planners.PlannerParams
+PARAMETERS = ParamTable('planner_node', [
+    Param('method', str, 'planner used when a request leaves method empty', PlannerConfig,
+          choices=tuple(planners.METHODS)),
+    Param('num_initial_grasps', int, 'N_g: random initial grasps of GP-GPIS-OPT / GP-D / GP-U (paper: 20)', _PP,
+          'n_initial_grasps', low=1, high=MAX_INITIAL_GRASPS),
+    Param('num_grasp_samples', int, 'K: heuristic grasp samples of GP-M and GP-P (paper: 1000)', _PP,
+          'n_grasp_samples', low=1, high=MAX_GRASP_SAMPLES),
+    Param('num_shape_samples', int, 'S: GPIS shape samples of the Monte-Carlo P_F estimate (paper: 1000)', _PP,
+          'n_shape_samples', low=10, high=100000),
+    Param('uncertainty_penalty', float, 'lambda of eq. 4, on variance measured in grid cells^2 (paper: 2.0); '
+          'requests outside this range are rejected', _PP, unit='1/cell^2', low=LAMBDA_RANGE[0],
+          high=LAMBDA_RANGE[1]),
+    Param('antipodal_alpha', float, 'alpha of eq. 5: bound on |n1 + n2|^2 of the antipodal constraint', _PP,
+          low=0.0, high=4.0),
+    Param('gp_p_adaptive', bool, 'GP-P: successive-halving Monte Carlo (true) or every candidate on all S shape '
+          'samples as in the paper (false); the final choice uses all S either way', _PP),
+    *gripper_params(('jaw_width', 'max_opening', 'friction_coefficient', 'position_noise', 'contact_patch')),
+    GRIPPER['jaw_height'].replace(target=PlannerConfig),
+    Param('planning_timeout', float, 'planning time after which a request is stopped and answered success=false '
+          '(queueing time not included)', PlannerConfig, unit='s', low=0.1, high=3600.0),
+    Param('image_scale', int, 'pixels per grid cell of grasp/image', PlannerConfig, low=1, high=64),
+    Param('grasp_height', float, 'height above the table, along its normal, of the jaw poses and contacts; '
+          'negative = automatic: half of object_height, at least half of jaw_height', PlannerConfig, unit='m',
+          low=-1.0, high=0.5),
+    Param('object_height', float, 'height of the object above the table for the automatic grasp_height; 0 = the '
+          'height measured by segmentation (GpisModel.object_height; if that is 0 too, unknown: the jaws close '
+          'half a jaw height above the table); > 0 overrides it', PlannerConfig, unit='m', low=0.0, high=1.0),
+    Param('max_queue', int, "requests (service calls + action goals) that may wait for a worker; more are "
+          "answered 'queue full' at once", PlannerConfig, low=0, high=MAX_QUEUE_LIMIT),
+    Param('workers', int, 'planning threads working on requests in parallel', PlannerConfig, low=1,
+          high=MAX_WORKERS, read_only=True),
+    *grid_limits('GpisModel', 250000),
+], checks=[check_gripper, check_resolutions])
+
 
 def build_config(v: dict[str, Any]) -> PlannerConfig:
     """Parameter values → :class:`PlannerConfig`; ValueError names the offending parameter."""
-    method = str(v['method'])
-    if method not in planners.METHODS:
-        raise ValueError(f"method={method!r} is not one of {', '.join(planners.METHODS)}")
-    if v['jaw_width'] >= v['max_opening']:
-        raise ValueError(f"jaw_width={v['jaw_width']} m must be smaller than max_opening={v['max_opening']} m")
-    if v['min_resolution'] >= v['max_resolution']:
-        raise ValueError('min_resolution must be smaller than max_resolution')
-    gripper = GripperParams(jaw_width=float(v['jaw_width']), max_opening=float(v['max_opening']),
-                            friction_coef=float(v['friction_coefficient']),
-                            position_noise_cells=float(v['position_noise_cells']))
-    limits = validation.Limits(max_grid_cells=int(v['max_grid_cells']), min_resolution=float(v['min_resolution']),
-                               max_resolution=float(v['max_resolution']))
-    return PlannerConfig(method=method, num_initial_grasps=int(v['num_initial_grasps']),
-                         num_grasp_samples=int(v['num_grasp_samples']), num_shape_samples=int(v['num_shape_samples']),
-                         uncertainty_penalty=float(v['uncertainty_penalty']), gripper=gripper,
-                         antipodal_alpha=float(v['antipodal_alpha']), gp_p_adaptive=bool(v['gp_p_adaptive']),
-                         planning_timeout=float(v['planning_timeout']), image_scale=int(v['image_scale']),
-                         max_queue=int(v['max_queue']), limits=limits, grasp_height=float(v['grasp_height']),
-                         object_height=float(v['object_height']), jaw_height=float(v['jaw_height']))
+    gripper = GripperParams(**PARAMETERS.kwargs(v, GripperParams))
+    config = PARAMETERS.kwargs(v, PlannerConfig)
+    if config['method'] not in planners.METHODS:
+        raise ValueError(f"method={config['method']!r} is not one of {', '.join(planners.METHODS)}")
+    return PlannerConfig(planner=planners.PlannerParams(gripper=gripper, **PARAMETERS.kwargs(v, _PP)),
+                         limits=validation.Limits(**PARAMETERS.kwargs(v, validation.Limits)), **config)
 
 
 def _object_height(config: PlannerConfig, model: Any) -> float:
@@ -147,51 +179,13 @@ class PlanJob:
 class PlannerNode(GuardedNode):
     """Thin ROS wrapper around :func:`gpis_grasp_ros.core.planners.plan` with a bounded request queue."""
 
+    #: one thread per waiting caller and per worker
+    executor_threads = MAX_QUEUE_LIMIT + MAX_WORKERS + 4
+
     def __init__(self, **kwargs) -> None:
         super().__init__('planner_node', **kwargs)
-        declare(self, 'method', 'gp-gpis-opt', 'planner used when a request leaves method empty',
-                choices=list(planners.METHODS))
-        declare(self, 'num_initial_grasps', 20, 'N_g: random initial grasps of GP-GPIS-OPT / GP-D / GP-U (paper: 20)',
-                low=1, high=MAX_INITIAL_GRASPS)
-        declare(self, 'num_grasp_samples', 1000, 'K: heuristic grasp samples of GP-M and GP-P (paper: 1000)',
-                low=1, high=MAX_GRASP_SAMPLES)
-        declare(self, 'num_shape_samples', 1000, 'S: GPIS shape samples of the Monte-Carlo P_F estimate (paper: 1000)',
-                low=10, high=100000)
-        declare(self, 'uncertainty_penalty', 2.0, 'lambda of eq. 4, on variance measured in grid cells^2 '
-                '(paper: 2.0); requests outside this range are rejected', low=LAMBDA_RANGE[0], high=LAMBDA_RANGE[1])
-        declare(self, 'jaw_width', 0.01, 'w_j: width of each jaw face (m)', low=0.0, high=0.2)
-        declare(self, 'max_opening', 0.09, 'w_g: maximum jaw opening (m)', low=0.005, high=0.5)
-        declare(self, 'friction_coefficient', 0.5, 'gamma: Coulomb friction coefficient', low=0.0, high=5.0)
-        declare(self, 'antipodal_alpha', 0.5, 'alpha of eq. 5: bound on |n1 + n2|^2 of the antipodal constraint',
-                low=0.0, high=4.0)
-        declare(self, 'position_noise_cells', 0.5, 'sigma_g: gripper positioning noise in grid cells (paper: '
-                'sigma_g^2 = 0.25 cells^2)', low=0.0, high=10.0)
-        declare(self, 'gp_p_adaptive', True, 'GP-P: successive-halving Monte Carlo (true) or every candidate on all S '
-                'shape samples as in the paper (false); the final choice uses all S either way')
-        declare(self, 'planning_timeout', 60.0, 'seconds of planning after which a request is stopped and answered '
-                'success=false (queueing time not included)', low=0.1, high=3600.0)
-        declare(self, 'image_scale', 16, 'pixels per grid cell of grasp/image', low=1, high=64)
-        declare(self, 'grasp_height', -1.0, 'height (m) above the table, along its normal, of the jaw poses and '
-                'contacts; negative = automatic: half of object_height, at least half of jaw_height',
-                low=-1.0, high=0.5)
-        declare(self, 'object_height', 0.0, 'height (m) of the object above the table for the automatic grasp_height; '
-                '0 = the height measured by segmentation (GpisModel.object_height; if that is 0 too, unknown: the '
-                'jaws close half a jaw height above the table); > 0 overrides it', low=0.0, high=1.0)
-        declare(self, 'jaw_height', conversions.DEFAULT_JAW_HEIGHT, 'height (m) of a jaw pad along the approach '
-                'direction (grasp_height clamp, markers)', low=0.001, high=0.2)
-        declare(self, 'max_queue', 32, 'requests (service calls + action goals) that may wait for a worker; '
-                "more are answered 'queue full' at once", low=0, high=MAX_QUEUE_LIMIT)
-        self.workers = declare(self, 'workers', 1, 'planning threads working on requests in parallel',
-                               low=1, high=MAX_WORKERS, read_only=True)
-        d = validation.Limits()
-        declare(self, 'max_grid_cells', d.max_grid_cells, 'largest GpisModel grid accepted (cells)',
-                low=16, high=250000)
-        declare(self, 'min_resolution', d.min_resolution, 'smallest GpisModel cell size accepted (m)',
-                low=1e-6, high=0.1)
-        declare(self, 'max_resolution', d.max_resolution, 'largest GpisModel cell size accepted (m)',
-                low=1e-3, high=10.0)
-        self.config: PlannerConfig = watch_parameters(self, build_config, self._apply_config)
-        self.executor_threads = MAX_QUEUE_LIMIT + self.workers + 4
+        self.config: PlannerConfig = PARAMETERS.watch(self, build_config, self._apply_config)
+        self.workers = self.config.workers
 
         self._lock = threading.Lock()
         self._model: GpisModel | None = None
@@ -254,7 +248,7 @@ class PlannerNode(GuardedNode):
         if method not in planners.METHODS:
             return f"unknown method '{method_field}'; valid: {', '.join(planners.METHODS)}"
         sampling = method in SAMPLING_METHODS
-        default_n = config.num_grasp_samples if sampling else config.num_initial_grasps
+        default_n = config.planner.n_grasp_samples if sampling else config.planner.n_initial_grasps
         limit = MAX_GRASP_SAMPLES if sampling else MAX_INITIAL_GRASPS
         n = int(n_field) or int(default_n)
         if n > limit:
@@ -263,7 +257,7 @@ class PlannerNode(GuardedNode):
         if not math.isfinite(lam):
             return f'uncertainty_penalty must be a finite number, got {lam}'
         if lam < 0:
-            lam = config.uncertainty_penalty
+            lam = config.planner.uncertainty_penalty
         elif lam > LAMBDA_RANGE[1]:
             return (f'uncertainty_penalty={lam} is outside the parameter range [{LAMBDA_RANGE[0]:g}, '
                     f'{LAMBDA_RANGE[1]:g}] (negative = use the node parameter)')
@@ -349,13 +343,11 @@ class PlannerNode(GuardedNode):
             job.error = exc
 
     def _planner_params(self, job: PlanJob) -> planners.PlannerParams:
-        c = job.config
+        """The node's planner settings with the request's N_g or K and λ."""
+        p = job.config.planner
         sampling = job.method in SAMPLING_METHODS
-        return planners.PlannerParams(
-            gripper=c.gripper, antipodal_alpha=c.antipodal_alpha,
-            n_initial_grasps=c.num_initial_grasps if sampling else job.n,
-            n_grasp_samples=job.n if sampling else c.num_grasp_samples,
-            n_shape_samples=c.num_shape_samples, uncertainty_penalty=job.lam, gp_p_adaptive=c.gp_p_adaptive)
+        return replace(p, n_initial_grasps=p.n_initial_grasps if sampling else job.n,
+                       n_grasp_samples=job.n if sampling else p.n_grasp_samples, uncertainty_penalty=job.lam)
 
     def _answer(self, response: Any, job: PlanJob) -> Any:
         """Fill a GraspPlan response (or PlanGrasp result: same fields) from a finished job."""
@@ -461,9 +453,13 @@ class PlannerNode(GuardedNode):
 
     # ------------------------------------------------------------------ shutdown
     def begin_shutdown(self) -> None:
-        with self._queue_cv:
+        queue_cv = getattr(self, '_queue_cv', None)  # None while __init__ has not made it yet
+        if queue_cv is None:
             super().begin_shutdown()
-            self._queue_cv.notify_all()
+            return
+        with queue_cv:
+            super().begin_shutdown()
+            queue_cv.notify_all()
 
     def destroy_node(self) -> None:
         self.begin_shutdown()
@@ -500,4 +496,4 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -23,15 +23,15 @@ gpis_node puts that height into ``GpisModel.object_height`` for the planner's ``
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import OccupancyGrid
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 
@@ -42,13 +42,13 @@ from gpis_grasp_ros.ros import conversions, validation
 from gpis_grasp_ros.ros.nodes.common import (
     LATCHED_QOS,
     GuardedNode,
-    declare,
     guarded,
     log_startup,
     run_node,
     sensor_qos,
-    watch_parameters,
 )
+from gpis_grasp_ros.ros.nodes.shared_params import GRIPPER
+from gpis_grasp_ros.ros.params import ZEROS_ARE_NONE, Param, ParamTable
 
 MAX_PENDING_IMAGES = 30
 
@@ -57,63 +57,6 @@ def _same_camera(a: sensing.CameraIntrinsics, b: sensing.CameraIntrinsics, tol_p
     """Intrinsics equal up to ``tol_px`` (those recovered from each cloud differ by rounding)."""
     return (a.width, a.height) == (b.width, b.height) and bool(np.allclose(
         [a.fx, a.fy, a.cx, a.cy], [b.fx, b.fy, b.cx, b.cy], atol=tol_px))
-
-
-def _optional_box(values: list[float], name: str) -> tuple[float, ...] | None:
-    """A 4-number parameter where all zeros means 'not given'."""
-    values = [float(v) for v in values]
-    if len(values) != 4:
-        raise ValueError(f"parameter '{name}' must have 4 numbers (all 0 = not given), got {values}")
-    return None if not any(values) else tuple(values)
-
-
-def perception_parameters(node: Node, defaults: sensing.SensingParams) -> dict:
-    """Declare the table / target / sensor parameters (issue 12) and return them as SensingParams fields."""
-    model = declare(node, 'sensor_model', 'carmine',
-                    "depth-noise model: 'carmine' (PrimeSense), 'realsense_d400' (stereo, sigma_z ~ z^2) or "
-                    "'custom' (sensor_sigma_* / sensor_quantisation_* below)",
-                    choices=list(noise_model.SENSOR_MODELS), read_only=True)
-    custom = noise_model.SensorModel(
-        'custom',
-        declare(node, 'sensor_sigma_constant', 0.0012, "custom sensor: c0 (m) in sigma_z = c0 + c1 (z - z_ref)^2 + "
-                'c2 z^2', low=0.0, high=1.0, read_only=True),
-        declare(node, 'sensor_sigma_quadratic', 0.0019, 'custom sensor: c1 (1/m)', low=0.0, high=1.0, read_only=True),
-        declare(node, 'sensor_sigma_reference_depth', 0.4, 'custom sensor: z_ref (m)', low=0.0, high=10.0,
-                read_only=True),
-        declare(node, 'sensor_sigma_stereo', 0.0, 'custom sensor: c2 (1/m)', low=0.0, high=1.0, read_only=True),
-        declare(node, 'sensor_quantisation_quadratic', 0.00285, 'custom sensor: q2 (1/m) in q = q2 z^2 + q0',
-                low=0.0, high=1.0, read_only=True),
-        declare(node, 'sensor_quantisation_constant', 0.0, 'custom sensor: q0 (m)', low=0.0, high=1.0,
-                read_only=True),
-        declare(node, 'sensor_occluder_x', 0.0, 'custom sensor: x (m, camera frame) of its projector or second '
-                'imager, whose shadow has no return (0 = none; carmine 0.075, realsense_d400 0.050)',
-                low=-1.0, high=1.0, read_only=True))
-    plane = _optional_box(declare(node, 'table_plane', [0.0, 0.0, 0.0, 0.0],
-                                  'table plane a x + b y + c z + d = 0 in the camera frame (m); all 0 = fit it '
-                                  '(robust MSAC over the whole cloud)'), 'table_plane')
-    target = declare(node, 'target', defaults.target,
-                     "which object to model: 'largest', 'nearest_center' (of the image), 'pixel' or 'table' "
-                     '(the object containing target_point)', choices=list(sensing.TARGET_MODES))
-    point = [float(v) for v in declare(node, 'target_point', [0.0, 0.0],
-                                       "target 'pixel': (u, v) px; target 'table': (x, y) m in the table frame")]
-    return dict(
-        sensor=custom if model == 'custom' else noise_model.SensorModel.named(model),
-        table_plane=plane,
-        roi_px=_optional_box(declare(node, 'roi_px', [0.0, 0.0, 0.0, 0.0],
-                                     'region of interest (u_min, v_min, u_max, v_max) px; all 0 = whole image'),
-                             'roi_px'),
-        roi_table=_optional_box(declare(node, 'roi_table', [0.0, 0.0, 0.0, 0.0],
-                                        'region of interest (x_min, y_min, x_max, y_max) m in the table frame; '
-                                        'all 0 = whole table'), 'roi_table'),
-        target=target,
-        target_point=tuple(point) if target in ('pixel', 'table') else None,
-        max_opening_m=declare(node, 'max_opening', float(defaults.max_opening_m),
-                              'gripper opening (m): a target with no part narrower is refused (0 = no check)',
-                              low=0.0, high=2.0),
-        max_tilt_deg=declare(node, 'max_tilt_deg', float(defaults.max_tilt_deg),
-                             'a table plane tilted more than this from the optical axis is refused (edge-on)',
-                             low=1.0, high=89.0),
-    )
 
 
 def target_needs_point(target: str) -> bool:
@@ -125,11 +68,97 @@ def target_needs_point(target: str) -> bool:
 class BurstConfig:
     """How frames are grouped into one estimate (see :class:`SegmentationNode`)."""
 
-    frames_to_average: int
-    min_frames: int
-    burst_timeout: float
-    max_stamp_gap: float
-    limits: validation.Limits
+    frames_to_average: int = 10  # paper: 10
+    min_frames: int = 3
+    burst_timeout: float = 1.5  # s
+    max_stamp_gap: float = 1.0  # s
+    limits: validation.Limits = field(default_factory=validation.Limits)
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """Camera inputs chosen at start-up (read-only parameters)."""
+
+    input_mode: str = 'cloud'
+    input_reliability: str = 'best_effort'
+
+
+_SP = sensing.SensingParams
+_SM = noise_model.SensorModel
+
+
+def _custom_sensor(name: str, description: str, field_name: str, high: float = 1.0, **kw: Any) -> Param:
+    return Param(name, float, 'custom sensor: ' + description, _SM, field_name, low=kw.pop('low', 0.0), high=high,
+                 read_only=True, **kw)
+
+
+PARAMETERS = ParamTable('segmentation_node', [
+    Param('input_mode', str, "'cloud': camera/depth/points; 'images': rgb + depth images + camera_info",
+          InputConfig, choices=('cloud', 'images'), read_only=True),
+    Param('input_reliability', str, "QoS reliability of the camera subscriptions ('best_effort' = sensor data)",
+          InputConfig, choices=('best_effort', 'reliable'), read_only=True),
+    Param('frames_to_average', int, 'frames averaged per estimate (paper: 10)', BurstConfig, low=1, high=1000),
+    Param('min_frames', int, 'fewest frames of a burst that make an estimate when the burst ends before '
+          'frames_to_average frames arrived', BurstConfig, low=1, high=1000),
+    Param('burst_timeout', float, 'a burst ends when no frame arrived for this long', BurstConfig, unit='s',
+          low=0.05, high=60.0),
+    Param('max_stamp_gap', float, 'frames whose header stamps are further apart than this, or go backwards, '
+          'belong to different bursts', BurstConfig, unit='s', low=0.01, high=3600.0),
+    Param('max_image_pixels', int, 'largest camera frame accepted; larger messages are rejected before anything '
+          'is allocated', validation.Limits, unit='pixels', low=1, high=50_000_000),
+    Param('grid_size', int, 'M: cells per side of the M x M grid (paper: 25)', _SP, unit='cells', low=4, high=100),
+    Param('grid_margin', float, 'margin around the object bounding box, as a fraction of its size', _SP, 'margin',
+          low=0.0, high=5.0),
+    Param('height_threshold', float, 'depth mask: minimum height above the table', _SP, unit='m', low=0.0, high=0.5),
+    Param('color_threshold', float, "RGB mask: minimum distance from the table colour's shadow line (0-255 "
+          'units); 0 = adaptive to the table texture seen on the fitted plane', _SP, low=0.0, high=442.0),
+    Param('chroma_z_min', float, 'clear targets: grow the target over table-level pixels this many robust sigmas '
+          "off the table's chromaticity, as colour-only evidence (0 = off)", _SP, low=0.0, high=100.0),
+    Param('clear_body_height', float, 'known height of a clear target body, e.g. from a catalogue of the objects, '
+          'instead of the priors (0 = the priors; they assume vertical walls and put a round body lying on the '
+          'table, a bottle, too low)', _SP, 'clear_body_height_m', unit='m', low=0.0,
+          high=float(_SP.max_object_height_m)),
+    Param('sensor_model', str, "depth-noise model: 'carmine' (PrimeSense), 'realsense_d400' (stereo, sigma_z ~ "
+          "z^2) or 'custom' (sensor_sigma_* / sensor_quantisation_* below)", default='carmine',
+          choices=tuple(noise_model.SENSOR_MODELS), read_only=True),
+    _custom_sensor('sensor_sigma_constant', 'c0 in sigma_z = c0 + c1 (z - z_ref)^2 + c2 z^2', 'sigma_constant_m',
+                   unit='m'),
+    _custom_sensor('sensor_sigma_quadratic', 'c1', 'sigma_quadratic_per_m', unit='1/m'),
+    _custom_sensor('sensor_sigma_reference_depth', 'z_ref', 'sigma_reference_depth_m', high=10.0, unit='m'),
+    _custom_sensor('sensor_sigma_stereo', 'c2', 'sigma_stereo_per_m', unit='1/m'),
+    _custom_sensor('sensor_quantisation_quadratic', 'q2 in q = q2 z^2 + q0', 'quantisation_per_m', unit='1/m'),
+    _custom_sensor('sensor_quantisation_constant', 'q0', 'quantisation_constant_m', unit='m'),
+    _custom_sensor('sensor_occluder_x', 'x (camera frame) of its projector or second imager, whose shadow has no '
+                   'return (0 = none; carmine 0.075, realsense_d400 0.050)', 'occluder_x_m', low=-1.0, unit='m',
+                   default=0.0),
+    Param('table_plane', list, 'table plane a x + b y + c z + d = 0 in the camera frame; all 0 = fit it (robust '
+          'MSAC over the whole cloud)', _SP, unit='m', size=4, rule=ZEROS_ARE_NONE),
+    Param('roi_px', list, 'region of interest (u_min, v_min, u_max, v_max); all 0 = whole image', _SP, unit='px',
+          size=4, rule=ZEROS_ARE_NONE),
+    Param('roi_table', list, 'region of interest (x_min, y_min, x_max, y_max) in the table frame; all 0 = whole '
+          'table', _SP, unit='m', size=4, rule=ZEROS_ARE_NONE),
+    Param('target', str, "which object to model: 'largest', 'nearest_center' (of the image), 'pixel' or 'table' "
+          '(the object containing target_point)', _SP, choices=tuple(sensing.TARGET_MODES)),
+    Param('target_point', list, "target 'pixel': (u, v) px; target 'table': (x, y) m in the table frame", _SP,
+          default=[0.0, 0.0], size=2),
+    GRIPPER['max_opening'].replace(target=_SP, field='max_opening_m', low=0.0, description=(
+        'w_g: maximum jaw opening; a target with no part narrower is refused (0 = no check)')),
+    Param('max_tilt_deg', float, 'a table plane tilted more than this from the optical axis is refused (edge-on)',
+          _SP, unit='deg', low=1.0, high=89.0),
+])
+
+
+def build_config(v: dict[str, Any]) -> tuple[sensing.SensingParams, BurstConfig]:
+    """Parameter values → (SensingParams, BurstConfig); ValueError names the parameter."""
+    model = str(v['sensor_model'])
+    sensor = (_SM(name='custom', **PARAMETERS.kwargs(v, _SM)) if model == 'custom' else _SM.named(model))
+    kwargs = PARAMETERS.kwargs(v, _SP)
+    kwargs['target_point'] = tuple(kwargs['target_point']) if target_needs_point(kwargs['target']) else None
+    params = sensing.SensingParams(sensor=sensor, **kwargs)
+    burst = PARAMETERS.kwargs(v, BurstConfig)
+    # min_frames above frames_to_average means: only complete bursts make an estimate
+    burst['min_frames'] = min(burst['min_frames'], burst['frames_to_average'])
+    return params, BurstConfig(limits=validation.Limits(**PARAMETERS.kwargs(v, validation.Limits)), **burst)
 
 
 class SegmentationNode(GuardedNode):
@@ -151,64 +180,9 @@ class SegmentationNode(GuardedNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('segmentation_node', **kwargs)
-        lim = validation.Limits()
-        self.input_mode = declare(self, 'input_mode', 'cloud',
-                                  "'cloud': camera/depth/points; 'images': rgb + depth images + camera_info",
-                                  choices=['cloud', 'images'], read_only=True)
-        self.frames_to_average = declare(self, 'frames_to_average', 10, 'frames averaged per estimate (paper: 10)',
-                                         low=1, high=1000)
-        reliability = declare(self, 'input_reliability', 'best_effort',
-                              "QoS reliability of the camera subscriptions ('best_effort' = sensor data)",
-                              choices=['best_effort', 'reliable'], read_only=True)
-        defaults = sensing.SensingParams()
-        self.params = sensing.SensingParams(
-            grid_size=declare(self, 'grid_size', defaults.grid_size, 'M: cells per side of the M x M grid (paper: 25)',
-                              low=4, high=100),
-            margin=declare(self, 'grid_margin', float(defaults.margin),
-                           'margin around the object bounding box, as a fraction of its size', low=0.0, high=5.0),
-            height_threshold=declare(self, 'height_threshold', float(defaults.height_threshold),
-                                     'depth mask: minimum height above the table (m)', low=0.0, high=0.5),
-            color_threshold=declare(self, 'color_threshold', float(defaults.color_threshold),
-                                    'RGB mask: minimum distance from the table colour\'s shadow line (0-255 units); '
-                                    '0 = adaptive to the table texture seen on the fitted plane',
-                                    low=0.0, high=442.0),
-            chroma_z_min=declare(self, 'chroma_z_min', float(defaults.chroma_z_min),
-                                 'clear targets: grow the target over table-level pixels this many robust sigmas '
-                                 'off the table\'s chromaticity, as colour-only evidence (0 = off)',
-                                 low=0.0, high=100.0),
-            see_through_test=declare(self, 'see_through_test', bool(defaults.see_through_test),
-                                     'a return behind the solid under a point seen above the table (a clear part '
-                                     'seen through) is moved to where its ray enters that solid; false: kept '
-                                     'where the sensor put it'),
-            shadow_test=declare(self, 'shadow_test', bool(defaults.shadow_test),
-                                'no-return, table-coloured pixels on table the sensor\'s projector or second imager '
-                                'cannot see beside an object (sensor_model\'s occluder), where the visual hull cannot '
-                                'tell them from the object (a near top-down view), are unmeasured table; false: '
-                                'missing = object'),
-            clear_body_prism=declare(self, 'clear_body_prism', bool(defaults.clear_body_prism),
-                                     'a clear target (under a quarter of it seen in depth) is the prism under its '
-                                     'silhouette, of the height at which it is as narrow as high or as deep as wide '
-                                     '(the lower); false: the table '
-                                     'seen through it stays where its rays meet the table'),
-            clear_body_height_m=declare(self, 'clear_body_height', float(defaults.clear_body_height_m),
-                                        'known height (m) of a clear target body, e.g. from a catalogue of the '
-                                        'objects, instead of the priors (0 = the priors; they assume vertical walls '
-                                        'and put a round body lying on the table, a bottle, too low)',
-                                        low=0.0, high=float(defaults.max_object_height_m)),
-            train_clear_body=declare(self, 'train_clear_body', bool(defaults.train_clear_body),
-                                     'the clear body\'s prism cells are GPIS training points (object, SDF variance '
-                                     'of full disagreement); false: unknown cells, the prior governs them'),
-            **perception_parameters(self, defaults),
-        )
-        declare(self, 'min_frames', 3, 'fewest frames of a burst that make an estimate when the burst ends '
-                'before frames_to_average frames arrived', low=1, high=1000)
-        declare(self, 'burst_timeout', 1.5, 'a burst ends when no frame arrived for this long (s)', low=0.05, high=60.0)
-        declare(self, 'max_stamp_gap', 1.0, 'frames whose header stamps are further apart than this (s), or go '
-                'backwards, belong to different bursts', low=0.01, high=3600.0)
-        declare(self, 'max_image_pixels', lim.max_image_pixels, 'largest camera frame accepted (pixels); larger '
-                'messages are rejected before anything is allocated', low=1, high=50_000_000)
-        self._base_params = self.params
-        self.burst: BurstConfig = watch_parameters(self, self._build_config, self._apply_config)[1]
+        self.params, self.burst = PARAMETERS.watch(self, build_config, self._apply_config)
+        inputs = InputConfig(**PARAMETERS.kwargs(PARAMETERS.values(self), InputConfig))
+        self.input_mode = inputs.input_mode
         self._frames: list[tuple[np.ndarray, np.ndarray]] = []
         self._last_stamp_ns = 0
         self._last_arrival = 0.0
@@ -220,7 +194,7 @@ class SegmentationNode(GuardedNode):
         self._pending_depth: dict[int, Image] = {}
         self._lock = threading.Lock()
 
-        qos = sensor_qos(reliability)
+        qos = sensor_qos(inputs.input_reliability)
         if self.input_mode == 'cloud':
             self.create_subscription(PointCloud2, 'camera/depth/points',
                                      guarded(self, 'camera/depth/points', self._on_cloud), qos)
@@ -238,37 +212,13 @@ class SegmentationNode(GuardedNode):
         #: latched outcome of the last segmentation: 'ok: ...' or 'failed: <reason>' (nothing published then)
         self.status_pub = self.create_publisher(String, 'segmentation/status', LATCHED_QOS)
         self.create_timer(0.05, self._on_burst_timer)
-        inputs = (['camera/depth/points'] if self.input_mode == 'cloud' else
+        topics = (['camera/depth/points'] if self.input_mode == 'cloud' else
                   ['camera/rgb/image_raw', 'camera/depth/image_raw', 'camera/rgb/camera_info'])
-        log_startup(self, inputs, ['object/occupancy', 'object/noise_map', 'object/top', 'segmentation/status'],
+        log_startup(self, topics, ['object/occupancy', 'object/noise_map', 'object/top', 'segmentation/status'],
                     ['input_mode', 'input_reliability', 'frames_to_average', 'min_frames', 'burst_timeout',
                      'grid_size', 'target', 'sensor_model'])
 
     # ------------------------------------------------------------------ parameters
-    def _build_config(self, v: dict[str, Any]) -> tuple[sensing.SensingParams, BurstConfig]:
-        """Parameter values → (SensingParams, BurstConfig); ValueError names the parameter."""
-        target = str(v['target'])
-        params = replace(self._base_params, grid_size=int(v['grid_size']), margin=float(v['grid_margin']),
-                         height_threshold=float(v['height_threshold']), color_threshold=float(v['color_threshold']),
-                         table_plane=_optional_box(v['table_plane'], 'table_plane'),
-                         roi_px=_optional_box(v['roi_px'], 'roi_px'),
-                         roi_table=_optional_box(v['roi_table'], 'roi_table'), target=target,
-                         target_point=(tuple(float(x) for x in v['target_point'])
-                                       if target in ('pixel', 'table') else None),
-                         max_opening_m=float(v['max_opening']), max_tilt_deg=float(v['max_tilt_deg']),
-                         chroma_z_min=float(v['chroma_z_min']),
-                         clear_body_prism=bool(v['clear_body_prism']), train_clear_body=bool(v['train_clear_body']),
-                         clear_body_height_m=float(v['clear_body_height']),
-                         see_through_test=bool(v['see_through_test']), shadow_test=bool(v['shadow_test']))
-        if target_needs_point(target) and len(v['target_point']) != 2:
-            raise ValueError(f"target '{target}' needs target_point with 2 numbers")
-        # min_frames above frames_to_average means: only complete bursts make an estimate
-        burst = BurstConfig(frames_to_average=int(v['frames_to_average']),
-                            min_frames=min(int(v['min_frames']), int(v['frames_to_average'])),
-                            burst_timeout=float(v['burst_timeout']), max_stamp_gap=float(v['max_stamp_gap']),
-                            limits=validation.Limits(max_image_pixels=int(v['max_image_pixels'])))
-        return params, burst
-
     def _apply_config(self, config: tuple[sensing.SensingParams, BurstConfig]) -> None:
         self.params, self.burst = config
         self.frames_to_average = self.burst.frames_to_average
@@ -419,4 +369,4 @@ def main(args: list[str] | None = None) -> int:
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
