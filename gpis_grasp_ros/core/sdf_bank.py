@@ -3,6 +3,9 @@
 Each grid is padded with extrapolated nodes (``f(nearest node) + distance``: the border is free space and a
 distance grows at most by the distance travelled) so jaws may start off the grid. The 4 bilinear coefficients of
 a cell are stored as one record so a lookup is a single gather; a per-thread workspace reuses large temporaries.
+The compiled contact search reads only the float64 padded grids and gradients, built in one compiled pass
+(:func:`pad_and_gradients`); the numpy path's coefficient records are built on its first lookup (a Monte-Carlo
+bank never needs them).
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+from numba import njit
 
 from gpis_grasp_ros.core.contact_kernel import border_positive, lipschitz_bounds
 from gpis_grasp_ros.core.grid import GridGeometry
@@ -36,15 +40,51 @@ def _coefficient_records(grids: np.ndarray, dtype: type = np.float32) -> np.ndar
     return out.reshape(-1, 4)
 
 
-def _pad_extrapolated(grids: np.ndarray, pad: int, resolution: float) -> np.ndarray:
-    """Grids ``(B, H, W)`` padded by ``pad`` nodes per side with ``f(nearest node) + distance``."""
-    _, h, w = grids.shape
+def pad_extrapolated(grids: np.ndarray, pad: int, resolution: float) -> np.ndarray:
+    """Grids ``(B, H, W)`` padded by ``pad`` nodes per side with ``f(nearest node) + distance`` (the numpy
+    reference of :func:`pad_and_gradients`)."""
+    ic, jc, dist = _pad_distances(grids.shape[1], grids.shape[2], pad, resolution)
+    return grids[:, ic[:, None], jc[None, :]] + dist[None]
+
+
+def _pad_distances(h: int, w: int, pad: int, resolution: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row and column of the nearest node of each padded node and its distance (m) to it: (Hp,), (Wp,), (Hp, Wp)."""
     ii = np.arange(-pad, h + pad)
     jj = np.arange(-pad, w + pad)
     ic = np.clip(ii, 0, h - 1)
     jc = np.clip(jj, 0, w - 1)
-    dist = np.hypot((ii - ic)[:, None], (jj - jc)[None, :]) * resolution
-    return grids[:, ic[:, None], jc[None, :]] + dist[None]
+    return ic, jc, np.hypot((ii - ic)[:, None], (jj - jc)[None, :]) * resolution
+
+
+@njit(cache=True, nogil=True)
+def pad_and_gradients(sdfs, ic, jc, dist, resolution, padded, gradients):
+    """One pass over grids ``sdfs`` (B, H, W): ``padded`` (B, Hp, Wp) = the value at the nearest node
+    (``ic``, ``jc``) + ``dist`` (:func:`pad_extrapolated`), ``gradients`` (B, H, W, 2) = ∂f/∂x, ∂f/∂y
+    by the formulas of ``np.gradient`` (central differences inside, one-sided on the border; the same
+    floating-point operations, so the same bits)."""
+    b, h, w = sdfs.shape
+    hp, wp = dist.shape
+    two = 2.0 * resolution
+    for k in range(b):
+        for i in range(hp):
+            for j in range(wp):
+                padded[k, i, j] = sdfs[k, ic[i], jc[j]] + dist[i, j]
+        for i in range(h):
+            for j in range(w):
+                if j == 0:
+                    gx = (sdfs[k, i, 1] - sdfs[k, i, 0]) / resolution
+                elif j == w - 1:
+                    gx = (sdfs[k, i, w - 1] - sdfs[k, i, w - 2]) / resolution
+                else:
+                    gx = (sdfs[k, i, j + 1] - sdfs[k, i, j - 1]) / two
+                if i == 0:
+                    gy = (sdfs[k, 1, j] - sdfs[k, 0, j]) / resolution
+                elif i == h - 1:
+                    gy = (sdfs[k, h - 1, j] - sdfs[k, h - 2, j]) / resolution
+                else:
+                    gy = (sdfs[k, i + 1, j] - sdfs[k, i - 1, j]) / two
+                gradients[k, i, j, 0] = gx
+                gradients[k, i, j, 1] = gy
 
 
 def _bilinear_combine(rec: np.ndarray, fx: np.ndarray, fy: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -102,13 +142,14 @@ class SdfBank:
     stored in ``dtype`` (float32 by default: a 1000-sample bank of a 25 x 25 grid takes ~42 MB
     with the gradient coefficients; SDF round-off ~1e-8 m) for the vectorised numpy path;
     ``padded`` and ``gradient_grids`` keep float64 copies for the compiled kernel (another ~21 MB
-    for that bank). ``sdfs`` keeps the float64 grids. Read-only after construction (safe to share
-    between threads; the Lipschitz bounds are computed once on first use).
+    for that bank; the numpy path's records are built on its first lookup). ``sdfs`` keeps the float64
+    grids. Read-only after construction (safe to share between threads; the Lipschitz bounds and the
+    coefficient records are computed once on first use).
     """
 
     def __init__(self, sdfs: np.ndarray, geometry: GridGeometry, gradients: np.ndarray | None = None,
                  pad_cells: int = 6, dtype: type = np.float32) -> None:
-        sdfs = np.asarray(sdfs, dtype=np.float64)
+        sdfs = np.ascontiguousarray(sdfs, dtype=np.float64)
         if sdfs.ndim == 2:
             sdfs = sdfs[None]
         if sdfs.ndim != 3 or sdfs.shape[1:] != geometry.shape:
@@ -119,33 +160,51 @@ class SdfBank:
         self.sdfs = sdfs
         self.n = sdfs.shape[0]
         res = geometry.resolution
-        if gradients is None:
-            gy, gx = np.gradient(sdfs, res, axis=(1, 2))
-        else:
+        self.pad = int(pad_cells)
+        self._pw = geometry.width + 2 * self.pad
+        self._ph = geometry.height + 2 * self.pad
+        ic, jc, dist = _pad_distances(geometry.height, geometry.width, self.pad, res)
+        #: float64 padded grids (B, Hp, Wp) read by the compiled kernel (:mod:`contact_kernel`)
+        self.padded = np.empty((self.n, self._ph, self._pw))
+        #: float64 gradient grids (B, H, W, 2) read by the compiled normals (:func:`contact_kernel.unit_normals`)
+        self.gradient_grids = np.empty(sdfs.shape + (2,))
+        if gradients is not None:
             gradients = np.asarray(gradients, dtype=np.float64)
             if gradients.ndim == 3:
                 gradients = gradients[None]
             if gradients.shape != sdfs.shape + (2,):
                 raise ValueError(f'gradients must have shape {sdfs.shape + (2,)}, got {gradients.shape}')
-            gx, gy = gradients[..., 0], gradients[..., 1]
-        self.pad = int(pad_cells)
-        self._pw = geometry.width + 2 * self.pad
-        self._ph = geometry.height + 2 * self.pad
+        pad_and_gradients(sdfs, ic, jc, dist, float(res), self.padded, self.gradient_grids)
+        if gradients is not None:
+            self.gradient_grids[...] = gradients
         # Array-of-structures: the 4 coefficients of a cell are adjacent and gathered as one record
         # (a 16-byte element for float32), ~1.5x faster than 4 gathers when lookups miss the cache.
         self._coef_dtype = np.dtype(dtype)
-        record = _RECORD[self._coef_dtype.char]
-        #: float64 padded grids (B, Hp, Wp) read by the compiled kernel (:mod:`contact_kernel`)
-        self.padded = np.ascontiguousarray(_pad_extrapolated(sdfs, self.pad, res))
         self._lipschitz: np.ndarray | None = None
         self._border_positive: np.ndarray | None = None
-        self._coef_rec = _coefficient_records(self.padded, dtype).view(record).reshape(-1)
+        self._records: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None
         self._cells_padded = self._ph * self._pw
         self._float_index_exact = self.n * self._cells_padded < 2 ** 24
-        self._grad_rec = tuple(_coefficient_records(gc, dtype).view(record).reshape(-1) for gc in (gx, gy))
-        #: float64 gradient grids (B, H, W, 2) read by the compiled normals (:func:`contact_kernel.unit_normals`)
-        self.gradient_grids = np.ascontiguousarray(np.stack([gx, gy], axis=-1), dtype=np.float64)
         self._cells_per_grid = geometry.height * geometry.width
+
+    def _build_records(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        if self._records is None:
+            record = _RECORD[self._coef_dtype.char]
+            coef = _coefficient_records(self.padded, self._coef_dtype).view(record).reshape(-1)
+            grad = tuple(_coefficient_records(self.gradient_grids[..., k], self._coef_dtype).view(record).reshape(-1)
+                         for k in range(2))
+            self._records = (coef, grad)
+        return self._records
+
+    @property
+    def _coef_rec(self) -> np.ndarray:
+        """Bilinear coefficient records of the padded grids (numpy path; built on first use)."""
+        return self._build_records()[0]
+
+    @property
+    def _grad_rec(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bilinear coefficient records of ∂f/∂x and ∂f/∂y (numpy path; built on first use)."""
+        return self._build_records()[1]
 
     @property
     def border_positive(self) -> np.ndarray:

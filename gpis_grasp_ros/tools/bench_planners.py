@@ -2,6 +2,7 @@
 
     python -m gpis_grasp_ros.bench planners [--seed N] [--repeats R] [--loop-samples S]
     python -m gpis_grasp_ros.bench planners --small [--seed N] [--repeats R] [--small-seeds K]
+    python -m gpis_grasp_ros.bench planners --equal-pf [--pf-seeds N] [--ladder K ...]
 
 Scene: a 25 x 25 GPIS (5 mm cells) of an "Object A"-like part: a well-observed body and a large
 "transparent" part that the mean shape includes (negative prior mean) with high variance
@@ -16,6 +17,12 @@ gives the **median** planning time (the final P_F estimate is timed separately a
 min-max range and the median planning **CPU** time (``GraspResult.planning_cpu_time``: on a
 shared machine wall time grows with the other jobs' load, CPU time much less). The GP-G rows also
 give the fraction of SCP restarts that met the convergence test and the median/max QP solves per restart.
+
+``--equal-pf``: GP-GPIS-OPT against GP-P **at equal achieved P_F** on the shipped bags (8 top-down, 8 head;
+segmentation and GPIS as the nodes run them): per bag, the median P_F and planning time (wall, CPU) of
+GP-GPIS-OPT over ``--pf-seeds`` planner seeds, and of adaptive GP-P with the smallest candidate count K of
+``--ladder`` whose median P_F reaches GP-GPIS-OPT's − 0.01; beside it the brute-force ratio (GP-P with every
+candidate on all S samples, K = ``n_grasp_samples``). Ratios are GP-P time / GP-GPIS-OPT time, medians over bags.
 
 ``--small``: the same scene shrunk (same shape in cells, 5.0 / 1.6 / 1.2 mm cells: a 12 / 4 / 3 cm
 grid), where the 9 cm opening reaches far beyond the grid and most face lines leave the padded grid.
@@ -38,6 +45,7 @@ import math
 import os
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
@@ -354,6 +362,65 @@ def small_objects(seed: int, repeats: int, planner_seeds: int = 0) -> None:
                       flush=True)
 
 
+BAG_DIR = Path(__file__).resolve().parents[2] / 'bags'
+LADDER = (10, 20, 50, 100, 200, 500, 1000)
+
+
+def _seed_medians(name: str, post: GpisPosterior, params: PlannerParams, seeds: range) -> tuple[float, float, float]:
+    """Median P_F, planning wall time and planning CPU time (s) of one plan per seed."""
+    runs = [plan(name, post, params, seed=k) for k in seeds]
+    return (float(np.median([r.p_f for r in runs])), float(np.median([r.planning_time for r in runs])),
+            float(np.median([r.planning_cpu_time for r in runs])))
+
+
+def equal_pf(n_seeds: int, ladder: tuple[int, ...], tolerance: float = 0.01) -> None:
+    """``--equal-pf``: GP-GPIS-OPT vs the cheapest adaptive GP-P of ``ladder`` reaching its P_F, per shipped bag."""
+    from gpis_grasp_ros.core.sensing import SensingParams
+    from gpis_grasp_ros.data.bags import load_bag
+    from gpis_grasp_ros.tools.evaluation.tasks import fit_scene
+
+    params = PlannerParams()
+    seeds = range(n_seeds)
+    bags = sorted(BAG_DIR.glob('*.mcap')) + sorted((BAG_DIR / 'head').glob('*.mcap'))
+    print(f'GP-GPIS-OPT vs GP-P at equal achieved P_F (GP-P reaches GP-GPIS-OPT - {tolerance}); medians over '
+          f'planner seeds 0-{n_seeds - 1}, one plan each; K ladder {", ".join(map(str, ladder))}; '
+          f'load average before: {_load()}')
+    print('\n| bag | GP-G P_F | GP-G wall (s) | GP-G CPU (s) | K | GP-P P_F | GP-P wall (s) | GP-P CPU (s) '
+          '| ratio wall | ratio CPU | brute wall ratio | brute CPU ratio |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+    ratios: list[tuple[float, float, float, float]] = []
+    warm = True
+    for path in bags:
+        label = f'{path.parent.name}/{path.stem}' if path.parent != BAG_DIR else path.stem
+        try:
+            post = fit_scene(load_bag(path), SensingParams()).posterior
+        except ValueError as exc:
+            print(f'| {label} | skipped: {exc} |')
+            continue
+        if warm:
+            plan('gp-gpis-opt', post, params, seed=0)
+            plan('gp-p', post, params, seed=0)
+            warm = False
+        pf_g, t_g, c_g = _seed_medians('gp-gpis-opt', post, params, seeds)
+        reached = None
+        for k in ladder:
+            pf_p, t_p, c_p = _seed_medians('gp-p', post, replace(params, n_grasp_samples=k), seeds)
+            reached = (k, pf_p, t_p, c_p)
+            if pf_p >= pf_g - tolerance:
+                break
+        k, pf_p, t_p, c_p = reached
+        mark = '' if pf_p >= pf_g - tolerance else ' (not reached)'
+        _, t_b, c_b = _seed_medians('gp-p', post, replace(params, gp_p_adaptive=False), seeds)
+        ratios.append((t_p / t_g, c_p / c_g, t_b / t_g, c_b / c_g))
+        print(f'| {label} | {pf_g:.3f} | {t_g:.3f} | {c_g:.3f} | {k}{mark} | {pf_p:.3f} | {t_p:.3f} | {c_p:.3f} | '
+              f'{t_p / t_g:.1f}x | {c_p / c_g:.1f}x | {t_b / t_g:.1f}x | {c_b / c_g:.1f}x |', flush=True)
+    if ratios:
+        med = np.median(np.array(ratios), axis=0)
+        print(f'\nmedian over {len(ratios)} bags: equal-P_F ratio {med[0]:.1f}x wall, {med[1]:.1f}x CPU; '
+              f'brute force (K = {params.n_grasp_samples}) {med[2]:.1f}x wall, {med[3]:.1f}x CPU; '
+              f'load average after: {_load()}')
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m gpis_grasp_ros.bench planners', description=__doc__.split('\n')[0])
     ap.add_argument('--seed', type=int, default=0)
@@ -365,7 +432,15 @@ def main(argv: list[str] | None = None) -> int:
                          'the kernel vs the sampled march')
     ap.add_argument('--small-seeds', type=int, default=0,
                     help='with --small: GP-GPIS-OPT P_F over planner seeds 0..N-1 on both paths (1.6 and 1.2 mm)')
+    ap.add_argument('--equal-pf', action='store_true',
+                    help='GP-GPIS-OPT vs GP-P at equal achieved P_F on the shipped top-down and head bags')
+    ap.add_argument('--pf-seeds', type=int, default=3, help='with --equal-pf: planner seeds per bag and method')
+    ap.add_argument('--ladder', type=int, nargs='+', default=list(LADDER),
+                    help='with --equal-pf: GP-P candidate counts K tried in order')
     args = ap.parse_args(argv)
+    if args.equal_pf:
+        equal_pf(args.pf_seeds, tuple(args.ladder))
+        return 0
     if args.small:
         small_objects(args.seed, args.repeats, args.small_seeds)
         return 0

@@ -1,0 +1,144 @@
+"""End-to-end replanning benchmark: camera frames → segmentation → GPIS (ML hyperparameters) → GP-GPIS-OPT → final P_F.
+
+    python -m gpis_grasp_ros.bench e2e [--repeats N] [--seed S] [--blas-threads T] [--no-frames]
+
+Each stage is the project's own call timed with ``time.perf_counter`` (one BLAS thread by default, through
+threadpoolctl, as the GPIS fit sets it itself): segmentation = ``segment_frames`` + the published grids
+(:func:`~gpis_grasp_ros.core.pipeline.publishable_grids`), GPIS = ``posterior_from_grids`` with the
+maximum-likelihood search (and, as "of which search", that time minus a fit with C and l fixed at the values
+found), GP-GPIS-OPT = the planner's planning time (``GraspResult.planning_time``, N_g = 20), final P_F = its
+evaluation time (S = 1000 fresh joint samples and the Monte-Carlo test), end to end = the wall time of the whole
+chain (and its CPU time, less sensitive to a shared machine's load). ``--repeats`` runs of every stage after one
+warm-up chain (which also loads the compiled kernels); the table gives median and min (s). Rows: a top-down bag,
+a head-camera bag, a real D435 capture, and whole-frame segmentation (no crop) of simulated 640 x 480 and
+1280 x 720 frames. The machine may be shared: the load average is printed with the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from gpis_grasp_ros.core.gpis import GpisParams
+from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
+from gpis_grasp_ros.core.planners import PlannerParams, plan
+from gpis_grasp_ros.core.sensing import CameraIntrinsics, SensingParams, segment_frames
+from gpis_grasp_ros.data.bags import load_bag
+
+BAG_DIR = Path(__file__).resolve().parents[2] / 'bags'
+
+
+@dataclass(frozen=True)
+class BagCase:
+    """One bag of the table: its path under ``bags/``, the frames read and the segmentation settings."""
+
+    label: str
+    path: str
+    frames: int = 10
+    sensing: SensingParams = SensingParams()
+
+
+def bag_cases() -> list[BagCase]:
+    """The benchmark's bags: top-down and head-camera object A (simulated), the real D435 bottle."""
+    bottle = SensingParams(sensor=SensorModel.named('realsense_d400'), target='pixel', target_point=(220.8, 160.8))
+    return [BagCase('top-down A', 'A_tape_dispenser.mcap'), BagCase('head A', 'head/A_tape_dispenser.mcap'),
+            BagCase('real D435 bottle', 'real/cleargrasp_000000080_bottle.mcap', 1, bottle)]
+
+
+def _stats(times: list[float]) -> tuple[float, float]:
+    return float(np.min(times)), float(np.median(times))
+
+
+def _load() -> str:
+    try:
+        return ' '.join(f'{v:.1f}' for v in os.getloadavg())
+    except OSError:
+        return 'n/a'
+
+
+def time_chain(scene, sensing: SensingParams, planner: PlannerParams, seed: int) -> dict[str, float]:
+    """One timed chain on a loaded bag: stage times (s) and the planned grasp's P_F."""
+    c0 = time.process_time()
+    t0 = time.perf_counter()
+    result = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, sensing, frame_id=scene.frame_id)
+    occ, noise, geometry = publishable_grids(result)
+    t1 = time.perf_counter()
+    posterior = posterior_from_grids(occ, noise, geometry)
+    t2 = time.perf_counter()
+    grasp = plan('gp-gpis-opt', posterior, planner, seed=seed)
+    t3 = time.perf_counter()
+    cpu = time.process_time() - c0
+    # the same fit with C and l fixed at the values found: the rest of the GPIS time is the search
+    fixed = GpisParams(optimize_hyperparameters=False, signal_variance=posterior.params.signal_variance,
+                       length_scale=posterior.params.length_scale)
+    t4 = time.perf_counter()
+    posterior_from_grids(occ, noise, geometry, fixed)
+    t5 = time.perf_counter()
+    return {'segmentation': t1 - t0, 'gpis': t2 - t1, 'search': (t2 - t1) - (t5 - t4), 'plan': grasp.planning_time,
+            'p_f': grasp.evaluation_time, 'e2e': t3 - t0, 'e2e_cpu': cpu, 'P_F': grasp.p_f}
+
+
+def whole_frame_scene(width: int, height: int, frames: int = 10):
+    """A simulated object A on the table seen whole-frame (no crop) by a ``width`` x ``height`` camera
+    (the Carmine's field of view: focal length scaled with the width)."""
+    from gpis_grasp_ros.sim.scene import CameraModel, Scene, SceneSpec, load_polygon_csv
+
+    f = 570.3 * width / 640.0
+    cam = CameraModel(fx=f, fy=f, cx=(width - 1) / 2.0, cy=(height - 1) / 2.0, width=width, height=height)
+    outline = load_polygon_csv(BAG_DIR / 'objects' / 'A_tape_dispenser.csv')
+    scene = Scene(SceneSpec(outline=outline, frames=frames, camera=cam, crop_margin_px=10 ** 6))
+    fr = list(scene.frames())
+    return (np.stack([x.rgb for x in fr]), np.stack([x.depth for x in fr]).astype(np.float64),
+            CameraIntrinsics(*scene.intrinsics))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m gpis_grasp_ros.bench e2e', description=__doc__.split('\n')[0])
+    ap.add_argument('--repeats', type=int, default=3, help='timed runs of every stage (min and median reported)')
+    ap.add_argument('--seed', type=int, default=0, help='planner seed')
+    ap.add_argument('--blas-threads', type=int, default=1, help='BLAS threads during every timed call')
+    ap.add_argument('--no-frames', action='store_true', help='skip the whole-frame segmentation rows')
+    args = ap.parse_args(argv)
+    planner = PlannerParams()
+    print(f'end to end: segmentation -> GPIS (ML) -> GP-GPIS-OPT (N_g = {planner.n_initial_grasps}) -> final P_F '
+          f'(S = {planner.n_shape_samples}); {args.repeats} runs after a warm-up, {args.blas_threads} BLAS thread(s); '
+          f'load average before: {_load()}')
+    cols = ('segmentation', 'gpis', 'search', 'plan', 'p_f', 'e2e', 'e2e_cpu')
+    print('\n| scene | segmentation (s) | GPIS + ML (s) | of which search (s) | GP-GPIS-OPT (s) | final P_F (s) '
+          '| end to end (s) | end to end, CPU (s) | P_F |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|')
+    with threadpool_limits(args.blas_threads):
+        for case in bag_cases():
+            scene = load_bag(BAG_DIR / case.path, frames=case.frames)
+            time_chain(scene, case.sensing, planner, args.seed)  # warm-up
+            runs = [time_chain(scene, case.sensing, planner, args.seed) for _ in range(max(1, args.repeats))]
+            cells = []
+            for c in cols:
+                lo, med = _stats([r[c] for r in runs])
+                cells.append(f'{med:.3f} (min {lo:.3f})')
+            print(f'| {case.label} | ' + ' | '.join(cells) + f' | {runs[-1]["P_F"]:.3f} |', flush=True)
+        if not args.no_frames:
+            print('\n| whole frame | segmentation (s) |\n|---|---:|')
+            sensing = SensingParams()
+            for w, h in ((640, 480), (1280, 720)):
+                rgb, depth, intr = whole_frame_scene(w, h)
+                times = []
+                for _ in range(max(1, args.repeats) + 1):
+                    t0 = time.perf_counter()
+                    publishable_grids(segment_frames(rgb, depth, intr, sensing))
+                    times.append(time.perf_counter() - t0)
+                lo, med = _stats(times[1:])
+                print(f'| {w} x {h}, {rgb.shape[0]} frames | {med:.3f} (min {lo:.3f}) |', flush=True)
+    print(f'\nload average after: {_load()}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
