@@ -30,7 +30,8 @@ from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.ros import conversions
 from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
-from gpis_grasp_ros.tools.import_rgbd import evaluate_bag, evaluate_seeds, main
+from gpis_grasp_ros.tools.evaluation.real import evaluate_bag, evaluate_seeds
+from gpis_grasp_ros.tools.import_rgbd import main
 from rosutil import RosHarness, segmentation_graph, wait_for
 
 REAL = Path(__file__).resolve().parents[2] / 'bags' / 'real'
