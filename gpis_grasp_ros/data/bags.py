@@ -8,8 +8,10 @@ pipeline on it exactly as the nodes do (:mod:`gpis_grasp_ros.core.pipeline`).
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +44,10 @@ class BagScene:
     true_center_of_mass: np.ndarray | None = None  # (x, y) m in true_geometry's grid (table) frame
 
 
+#: The topics :func:`load_bag` reads.
+SCENE_TOPICS = (TOPICS['points'], TOPICS['rgb'], TOPICS['depth'], TOPICS['rgb_info'], TOPICS['sdf'], TOPICS['com'])
+
+
 def load_bag(path: str | os.PathLike[str], frames: int = 10, source: str = 'cloud') -> BagScene:
     """Read the first ``frames`` camera frames and the ground truth of a bag.
 
@@ -49,14 +55,21 @@ def load_bag(path: str | os.PathLike[str], frames: int = 10, source: str = 'clou
     ``'images'`` the RGB + depth images and camera info.
     """
     path = Path(path)
+    return scene_from_messages(read_messages(path, SCENE_TOPICS), frames, source, str(path))
+
+
+def scene_from_messages(msgs: Iterable[tuple[str, str, int, Any]], frames: int = 10, source: str = 'cloud',
+                        name: str = 'messages') -> BagScene:
+    """:func:`load_bag` of ``(topic, msgtype, t_ns, msg)`` tuples in time order (e.g. a capture's messages
+    before they are written: the scene is then exactly the one its bag would give); ``name`` for errors."""
+    path = name
     clouds: list[tuple[np.ndarray, np.ndarray]] = []
     rgbs: dict[int, np.ndarray] = {}
     depths: dict[int, np.ndarray] = {}
     info = None
     frame_id, stamp = '', 0
     scene_gt: dict = {}
-    topics = [TOPICS['points'], TOPICS['rgb'], TOPICS['depth'], TOPICS['rgb_info'], TOPICS['sdf'], TOPICS['com']]
-    for topic, _type, _t, msg in read_messages(path, topics):
+    for topic, _type, _t, msg in msgs:
         if topic == TOPICS['sdf']:
             scene_gt['sdf'], scene_gt['geometry'] = messages.float_grid_to_numpy(msg)
         elif topic == TOPICS['com']:

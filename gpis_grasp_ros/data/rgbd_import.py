@@ -47,6 +47,7 @@ from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing import CameraIntrinsics
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 from gpis_grasp_ros.data import bagio, messages
+from gpis_grasp_ros.data.bags import BagScene, scene_from_messages
 from gpis_grasp_ros.data.ground_truth import GroundTruth, ground_truth_from_mask  # noqa: F401 (this module's API)
 from gpis_grasp_ros.data.topics import TOPIC_TYPES, TOPICS
 
@@ -268,6 +269,55 @@ def capture_table(capture: Capture, sensor: SensorModel) -> TableFrame:
     return fit_table_plane(points[valid], sensor)
 
 
+@dataclass
+class ImportedCapture:
+    """A capture as its bag holds it: the cropped and scaled frame, its ground truth (or None) and the target
+    pixel in the frame (or None)."""
+
+    capture: Capture
+    truth: GroundTruth | None
+    target_px: tuple[float, float] | None
+
+
+def import_capture(rgb: str | os.PathLike[str], depth: str | os.PathLike[str],
+                   intrinsics: str | os.PathLike[str] | Mapping[str, Any], depth_scale: float = 0.001,
+                   crop: tuple[int, int, int, int] | None = None, scale: float = 1.0,
+                   gt_mask: str | os.PathLike[str] | None = None, gt_depth: str | os.PathLike[str] | None = None,
+                   target_px: tuple[float, float] | None = None, sensor: str = 'realsense_d400',
+                   frame_id: str = FRAME_ID) -> ImportedCapture:
+    """Read a capture, crop and scale it and build the ground truth of the mask component under ``target_px``
+    (a pixel of the full-resolution image) from the cropped, unscaled mask and true depth, in the table plane
+    fitted to the cropped and scaled frame (module docstring): what ``gpis-grasp import-rgbd`` writes."""
+    capture = load_capture(rgb, depth, intrinsics, depth_scale)
+    extra = {}
+    if gt_mask or gt_depth or target_px:
+        if not (gt_mask and gt_depth and target_px):
+            raise ValueError('ground truth needs all of --gt-mask, --gt-depth and --target-pixel')
+        extra['mask'] = load_rgb(gt_mask)[..., 0]
+        extra['true_depth'] = load_depth(gt_depth, depth_scale)
+        if extra['mask'].shape != capture.depth.shape or extra['true_depth'].shape != capture.depth.shape:
+            raise ValueError('--gt-mask and --gt-depth must have the size of the capture')
+    crop = tuple(crop) if crop else None
+    small, _ = crop_and_scale(capture, crop, scale)
+    truth, target = None, None
+    if target_px:
+        target = map_pixel(*target_px, crop, scale)
+        table = capture_table(small, SensorModel.named(sensor))
+        # the ground truth keeps the full resolution: only the crop applies to it (module docstring)
+        full, extra = crop_and_scale(capture, crop, 1.0, extra)
+        truth = ground_truth_from_mask(full, extra['mask'], extra['true_depth'], map_pixel(*target_px, crop, 1.0),
+                                       table, frame_id=frame_id)
+    return ImportedCapture(small, truth, target)
+
+
+def capture_scene(imported: ImportedCapture, frame_id: str = FRAME_ID) -> BagScene:
+    """The scene :func:`~gpis_grasp_ros.data.bags.load_bag` would read from the capture's bag (one frame,
+    from the cloud), built from the same messages without writing them."""
+    f = messages.RosbagsFactory(bagio.get_typestore())
+    return scene_from_messages(capture_messages(imported.capture, f, truth=imported.truth, frame_id=frame_id),
+                               frames=1, name='imported capture')
+
+
 # ------------------------------------------------------------------------------------------ writing
 def capture_messages(capture: Capture, f: Any, stamp_ns: int = DEFAULT_START_NS,
                      truth: GroundTruth | None = None,
@@ -320,6 +370,6 @@ def write_capture_bag(capture: Capture, path: str | os.PathLike[str], truth: Gro
     return Path(path)
 
 
-__all__ = ['Capture', 'GroundTruth', 'capture_messages', 'capture_table', 'crop_and_scale', 'depth_to_metres',
-           'ground_truth_from_mask', 'load_capture', 'load_depth', 'load_intrinsics', 'load_rgb', 'map_pixel',
-           'read_exr', 'write_capture_bag']
+__all__ = ['Capture', 'GroundTruth', 'ImportedCapture', 'capture_messages', 'capture_scene', 'capture_table',
+           'crop_and_scale', 'depth_to_metres', 'ground_truth_from_mask', 'import_capture', 'load_capture',
+           'load_depth', 'load_intrinsics', 'load_rgb', 'map_pixel', 'read_exr', 'write_capture_bag']

@@ -20,6 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'make-dataset': ('gpis_grasp_ros.tools.dataset_cli', 'generate a deterministic object set (manifest, bags)'),
     'evaluate': ('gpis_grasp_ros.tools.evaluate', 'dataset evaluation: serial, process or Dask executor'),
     'tune': ('gpis_grasp_ros.tools.tune', 'k-fold cross-validation of lambda and alpha on a dataset'),
+    'evaluate-real': ('gpis_grasp_ros.tools.evaluate_real', 'the planners on a manifest of real captures, as a table'),
 }
 
 

@@ -20,113 +20,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from gpis_grasp_ros.core.gripper import GripperParams
-from gpis_grasp_ros.core.noise_model import SENSOR_MODELS, SensorModel
-from gpis_grasp_ros.core.pipeline import posterior_from_grids
-from gpis_grasp_ros.core.planners import METHODS, PlannerParams, plan
-from gpis_grasp_ros.core.sensing import SensingParams, SensingResult
+from gpis_grasp_ros.core.noise_model import SENSOR_MODELS
+from gpis_grasp_ros.core.planners import METHODS
 from gpis_grasp_ros.data import rgbd_import as ri
-from gpis_grasp_ros.data.bags import load_bag
-from gpis_grasp_ros.tools.evaluation.tasks import fit_scene
-from gpis_grasp_ros.tools.evaluation.truth import TrueShape
-
-
-@dataclass
-class RealEvaluation:
-    """Figures of one imported capture (see :func:`evaluate_bag`)."""
-
-    bag: str
-    occupancy_iou: float  # target occupancy (>= 0.5) vs the ground truth, on the segmentation grid
-    mean_shape_iou: float  # GPIS mean shape {mean < 0} vs the ground truth
-    successes: int  # of ``trials`` simulated executions of the GP-GPIS-OPT grasp in force closure on the truth
-    trials: int
-    p_f: float
-    jaw_clearance_m: float  # smallest distance (m) from a jaw centre to another object seen on the table
-    #                          (evidence more than 1 cm outside the true target)
-    objects_seen: int
-    tilt_deg: float
-    message: str = ''
-
-
-def _other_objects_xy(result: SensingResult) -> np.ndarray:
-    """Table-plane feet (grid x, y in m) of the evidence pixels of objects other than the target."""
-    other = (result.labels_px > 0) & ~result.object_mask & np.isfinite(result.mean_depth)
-    pts = result.intrinsics.rays()[other] * result.mean_depth[other][:, None]
-    feet = pts - (pts @ result.table.n + result.table.offset_m)[:, None] * result.table.n
-    return result.geometry.from_sensor(feet)[0]
-
-
-#: SDF noise variance (m^2) of every cell when planning on the ground truth (``oracle``): a near-certain shape
-ORACLE_NOISE_M2 = 1e-6
-
-
-def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',
-                 trials: int = 20, seed: int = 0, oracle: bool = False, grid_size: int = 25,
-                 method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0,
-                 uncertainty_penalty: float | None = None) -> RealEvaluation:
-    """Segment an imported capture as segmentation_node does (one frame, ``target:=pixel``), fit the
-    GPIS, plan GP-GPIS-OPT (or ``method``, one of :data:`~gpis_grasp_ros.core.planners.METHODS`) and execute it
-    ``trials`` times on the bag's ground truth (through the camera frame: plan grid → camera → ground-truth grid).
-
-    ``oracle``: plan on the ground truth itself instead of the perceived shape - its occupancy sampled at
-    the planning grid's cell centres (0 or 100), every cell trained with ``ORACLE_NOISE_M2`` - the best any
-    perception can give the planner at the grid's resolution. The IoUs are still the perceived ones.
-    ``grid_size``: M of the M x M planning grid (segmentation_node's ``grid_size``); ``clear_body_height_m``: a
-    clear target body's known height (m; segmentation_node's ``clear_body_height``, 0 = the priors);
-    ``uncertainty_penalty``: λ of eq. 4/6 per cell² (planner_node's ``uncertainty_penalty``; None = its default)."""
-    return evaluate_seeds(path, target_px, [seed], sensor, trials, oracle, grid_size, method, clear_body_height_m,
-                          uncertainty_penalty)[0]
-
-
-def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequence[int],
-                   sensor: str = 'realsense_d400', trials: int = 20, oracle: bool = False, grid_size: int = 25,
-                   method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0,
-                   uncertainty_penalty: float | None = None) -> list[RealEvaluation]:
-    """:func:`evaluate_bag` for each planner and execution seed of ``seeds``: the capture is segmented and the
-    GPIS fitted once."""
-    planner = PlannerParams() if uncertainty_penalty is None else PlannerParams(
-        uncertainty_penalty=float(uncertainty_penalty))  # checked before the segmentation
-    scene = load_bag(path, frames=1)
-    if scene.true_sdf is None or scene.true_geometry is None:
-        raise ValueError(f'{path}: no ground truth in the bag')
-    params = SensingParams(sensor=SensorModel.named(sensor), target='pixel', target_point=tuple(target_px),
-                           grid_size=int(grid_size), clear_body_height_m=float(clear_body_height_m))
-    fit = fit_scene(scene, params)
-    posterior, result = fit.posterior, fit.sensing
-    g = result.geometry
-    true_shape = TrueShape(scene.true_sdf, scene.true_geometry, g)
-    truth = true_shape.values_at(g.cell_centers()) < 0
-    mean_shape = posterior.mean < 0
-    if oracle:
-        posterior = posterior_from_grids(np.where(truth, 100, 0).astype(np.int8), np.full(g.shape, ORACLE_NOISE_M2), g)
-
-    def iou(a: np.ndarray) -> float:
-        return float((a & truth).sum() / max((a | truth).sum(), 1))
-
-    occupancy_iou, mean_shape_iou = iou(result.occupancy >= 0.5), iou(mean_shape)
-    gripper = GripperParams().resolved(g)
-    others = _other_objects_xy(result)  # other objects seen, minus fragments of the true target (1 cm)
-    if len(others):
-        others = others[~(true_shape.values_at(others) < 0.01)]
-    out = []
-    for seed in seeds:
-        grasp = plan(method, posterior, planner, seed=seed)
-        if not grasp.success:
-            out.append(RealEvaluation(str(path), occupancy_iou, mean_shape_iou, 0, trials, float('nan'), float('nan'),
-                                      result.objects_seen, result.table.tilt_deg, grasp.message))
-            continue
-        ok = true_shape.execute(grasp.jaw1, grasp.jaw2, gripper, trials, np.random.default_rng(seed))
-        clearance = (float(min(np.linalg.norm(others - np.asarray(j), axis=1).min() for j in (grasp.jaw1, grasp.jaw2)))
-                     if len(others) else float('inf'))
-        out.append(RealEvaluation(str(path), occupancy_iou, mean_shape_iou, int(ok), trials, float(grasp.p_f),
-                                  clearance, result.objects_seen, result.table.tilt_deg, grasp.message))
-    return out
+from gpis_grasp_ros.tools.evaluation.real import evaluate_seeds
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -231,25 +131,11 @@ def main(argv: list[str] | None = None) -> int:
             intr = {'fx': args.fx, 'fy': args.fy, 'cx': args.cx, 'cy': args.cy}
         else:
             raise ValueError('give --intrinsics FILE or all of --fx --fy --cx --cy')
-        capture = ri.load_capture(args.rgb, args.depth, intr, args.depth_scale)
-        extra = {}
-        if args.gt_mask or args.gt_depth or args.target_pixel:
-            if not (args.gt_mask and args.gt_depth and args.target_pixel):
-                raise ValueError('ground truth needs all of --gt-mask, --gt-depth and --target-pixel')
-            extra['mask'] = ri.load_rgb(args.gt_mask)[..., 0]
-            extra['true_depth'] = ri.load_depth(args.gt_depth, args.depth_scale)
-            if extra['mask'].shape != capture.depth.shape or extra['true_depth'].shape != capture.depth.shape:
-                raise ValueError('--gt-mask and --gt-depth must have the size of the capture')
         crop = tuple(args.crop) if args.crop else None
-        small, _ = ri.crop_and_scale(capture, crop, args.scale)
-        truth, target = None, None
-        if args.target_pixel:
-            target = ri.map_pixel(*args.target_pixel, crop, args.scale)
-            table = ri.capture_table(small, SensorModel.named(args.sensor))
-            # the ground truth keeps the full resolution: only the crop applies to it (module docstring)
-            full, extra = ri.crop_and_scale(capture, crop, 1.0, extra)
-            truth = ri.ground_truth_from_mask(full, extra['mask'], extra['true_depth'], ri.map_pixel(*args.target_pixel,
-                                              crop, 1.0), table, frame_id=args.frame_id)
+        imported = ri.import_capture(args.rgb, args.depth, intr, args.depth_scale, crop, args.scale, args.gt_mask,
+                                     args.gt_depth, tuple(args.target_pixel) if args.target_pixel else None,
+                                     args.sensor, args.frame_id)
+        small, truth, target = imported.capture, imported.truth, imported.target_px
         meta = {'rgb': str(args.rgb), 'depth': str(args.depth), 'crop': args.crop, 'scale': args.scale,
                 'target_pixel': None if target is None else [round(target[0], 2), round(target[1], 2)],
                 'sensor': args.sensor}

@@ -93,20 +93,20 @@ def test_nodes_declare_exactly_their_table(node, context):
 
 
 def test_defaults_come_from_the_library_dataclasses():
-    from gpis_grasp_ros.core import contacts, gpis, planners, sensing
+    from gpis_grasp_ros.core import gpis, gripper, planners, sensing
 
     tables = ros_params.node_tables()
     assert tables['segmentation_node']['grid_margin'].default_value() == sensing.SensingParams().margin
     assert tables['gpis_node']['length_scale_max_extent'].default_value() == gpis.GpisParams().length_scale_max_extent
     assert tables['planner_node']['num_initial_grasps'].default_value() == planners.PlannerParams().n_initial_grasps
-    assert tables['planner_node']['friction_coefficient'].default_value() == contacts.GripperParams().friction_coef
+    assert tables['planner_node']['friction_coefficient'].default_value() == gripper.GripperParams().friction_coef
     assert tables['planner_node']['friction_coefficient'].maps_to == 'GripperParams.friction_coef'
 
 
 def test_gripper_is_one_group_in_metres(context):
     """planner_node and gripper_sim_node share the gripper; sigma_g is in metres, negative = half a cell of the
     grid the jaws close on (the planner's default, the paper's sigma_g^2 = 0.25 cells^2)."""
-    from gpis_grasp_ros.core import contacts
+    from gpis_grasp_ros.core import gripper
     from gpis_grasp_ros.core.grid import GridGeometry
     from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
     from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
@@ -120,11 +120,11 @@ def test_gripper_is_one_group_in_metres(context):
     sim = GripperSimNode(context=context)
     try:
         g = planner.config.gripper
-        assert g == contacts.GripperParams(jaw_width=0.01, max_opening=0.09, friction_coef=0.5,
+        assert g == gripper.GripperParams(jaw_width=0.01, max_opening=0.09, friction_coef=0.5,
                                            position_noise_cells=0.5)
         geometry = GridGeometry(0.0, 0.0, 0.004, 25, 25, 0.7, 'cam')
         assert g.sigma_g(geometry) == 0.5 * 0.004 and g.patch_cells(geometry) == 0.5
-        assert sim.gripper == contacts.GripperParams(jaw_width=0.01, max_opening=0.09, friction_coef=0.5,
+        assert sim.gripper == gripper.GripperParams(jaw_width=0.01, max_opening=0.09, friction_coef=0.5,
                                                      position_noise=0.003, contact_patch=0.003)
         assert planner.set_parameters([Parameter('position_noise', value=0.002)])[0].successful
         assert planner.config.gripper.sigma_g(geometry) == 0.002

@@ -1,0 +1,153 @@
+"""Tables, summary and reliability diagram of ``gpis-grasp evaluate-real`` from its result rows.
+
+Per unit (capture × variant): the perceived IoUs, per method the closures (mean over seeds of the successes
+of ``trials`` simulated executions), the mean P_F and the mean |P_F − closure rate| over the seeds' grasps, the
+oracle's closures and P_F, the nearest other object to a jaw (smallest over the perceived grasps), objects
+seen, the refusal reason and the summed task time. A seed without a grasp closes 0 and has no P_F.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpis_grasp_ros.tools.evaluate_real.tasks import ORACLE
+
+
+def _mean(values: Sequence[float]) -> float:
+    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    return float(np.mean(v)) if v else math.nan
+
+
+def _method_figures(sel: Sequence[dict[str, Any]]) -> dict[str, float]:
+    rates = [(r['p_f'], r['successes'] / r['trials']) for r in sel if math.isfinite(r['p_f']) and r['trials']]
+    return {'closures': _mean([r['successes'] for r in sel]), 'p_f': _mean([p for p, _ in rates]),
+            'gap': _mean([abs(p - c) for p, c in rates]), 'grasps': len(rates), 'seeds': len(sel)}
+
+
+def aggregate(rows: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool) -> list[dict[str, Any]]:
+    """One summary dict per unit, in the rows' order."""
+    units: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        units.setdefault(r['object'], []).append(r)
+    out = []
+    for uid, sel in units.items():
+        first = sel[0]
+        u: dict[str, Any] = {'unit': uid, 'capture': first['capture'], 'variant': first['variant'],
+                             'refusal': first['refusal'], 'trials': first['trials'],
+                             'time_s': float(sum(r['task_time_s'] for r in sel))}
+        if first['status'] == 'refused':
+            u.update({'occupancy_iou': math.nan, 'mean_shape_iou': math.nan, 'objects_seen': None,
+                      'jaw_clearance_mm': math.nan, 'methods': {}, 'oracle': None})
+            out.append(u)
+            continue
+        perceived = [r for r in sel if not r['oracle']]
+        clear = [r['jaw_clearance_m'] for r in perceived if r['jaw_clearance_m'] is not None
+                 and not math.isnan(r['jaw_clearance_m'])]
+        u.update({'occupancy_iou': first['occupancy_iou'], 'mean_shape_iou': first['mean_shape_iou'],
+                  'objects_seen': first['objects_seen'], 'tilt_deg': first['tilt_deg'],
+                  'jaw_clearance_mm': 1000.0 * min(clear) if clear else math.nan,
+                  'methods': {m: _method_figures([r for r in perceived if r['method'] == m]) for m in methods},
+                  'oracle': _method_figures([r for r in sel if r['oracle']]) if oracle else None})
+        out.append(u)
+    return out
+
+
+def _f(x: float | None, fmt: str = '.2f') -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return '–'
+    if isinstance(x, float) and math.isinf(x):
+        return 'none seen'
+    return format(x, fmt)
+
+
+def table(units: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool) -> str:
+    """Markdown table, one row per unit."""
+    trials = units[0]['trials'] if units else 0
+    head = ['capture', 'variant', 'occ. IoU', 'mean-shape IoU']
+    for m in methods:
+        head += [f'{m} closures /{trials}', f'{m} P_F', f'{m} \\|P_F − rate\\|']
+    if oracle:
+        head += [f'oracle closures /{trials}', 'oracle P_F']
+    head += ['jaw clearance (mm)', 'objects seen', 'refused', 'time (s)']
+    lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+    for u in units:
+        cells = [u['capture'], u['variant'], _f(u['occupancy_iou']), _f(u['mean_shape_iou'])]
+        for m in methods:
+            f = u['methods'].get(m)
+            cells += ['–', '–', '–'] if f is None else [_f(f['closures'], '.1f'), _f(f['p_f']), _f(f['gap'])]
+        if oracle:
+            o = u['oracle']
+            cells += ['–', '–'] if o is None else [_f(o['closures'], '.1f'), _f(o['p_f'])]
+        refusal = u['refusal'].replace('|', '/')
+        cells += [_f(u['jaw_clearance_mm'], '.0f'), _f(u['objects_seen'], 'd'), refusal or '', _f(u['time_s'], '.0f')]
+        lines.append('| ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
+def summary(units: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool) -> dict[str, Any]:
+    """Means over the units that were not refused (captures and variants alike)."""
+    ok = [u for u in units if not u['refusal']]
+    s: dict[str, Any] = {'units': len(units), 'refused': len(units) - len(ok),
+                         'occupancy_iou': _mean([u['occupancy_iou'] for u in ok]),
+                         'mean_shape_iou': _mean([u['mean_shape_iou'] for u in ok]),
+                         'methods': {m: {k: _mean([u['methods'][m][k] for u in ok]) for k in ('closures', 'p_f', 'gap')}
+                                     for m in methods}}
+    if oracle:
+        s['oracle'] = {k: _mean([u['oracle'][k] for u in ok]) for k in ('closures', 'p_f', 'gap')}
+    return s
+
+
+def summary_line(s: dict[str, Any], trials: int) -> str:
+    parts = [f"{s['units']} units ({s['refused']} refused): occupancy IoU {_f(s['occupancy_iou'])}, "
+             f"mean-shape IoU {_f(s['mean_shape_iou'])}"]
+    for m, f in s['methods'].items():
+        parts.append(f"{m} {_f(f['closures'], '.1f')}/{trials} (P_F {_f(f['p_f'])}, |P_F − rate| {_f(f['gap'])})")
+    if 'oracle' in s:
+        o = s['oracle']
+        parts.append(f"oracle {_f(o['closures'], '.1f')}/{trials} (P_F {_f(o['p_f'])})")
+    return 'mean over ' + '; '.join(parts)
+
+
+def reliability(rows: Sequence[dict[str, Any]], bins: int = 10) -> dict[str, list[dict[str, Any]]]:
+    """Per series (perceived grasps of every method; oracle grasps): P_F bins with count, mean P_F, closure rate."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for name, sel in (('perceived', [r for r in rows if not r['oracle']]), (ORACLE, [r for r in rows if r['oracle']])):
+        pts = [(r['p_f'], r['successes'] / r['trials']) for r in sel if math.isfinite(r['p_f']) and r['trials']]
+        if not pts:
+            continue
+        p = np.array(pts)
+        idx = np.minimum((p[:, 0] * bins).astype(int), bins - 1)
+        out[name] = [{'lo': k / bins, 'hi': (k + 1) / bins, 'count': int((idx == k).sum()),
+                      'p_f': float(p[idx == k, 0].mean()), 'closure_rate': float(p[idx == k, 1].mean())}
+                     for k in range(bins) if (idx == k).any()]
+    return out
+
+
+def plot_reliability(rel: dict[str, list[dict[str, Any]]], path: Path, title: str = '') -> Path:
+    """Reliability diagram (binned P_F vs closure rate, counts beside the points) as a PNG."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 5.0), dpi=120)
+    ax.plot([0, 1], [0, 1], color='0.6', lw=1, ls='--', label='calibrated')
+    for (name, bins), style in zip(rel.items(), ('o-', 's:'), strict=False):
+        x, y = [b['p_f'] for b in bins], [b['closure_rate'] for b in bins]
+        ax.plot(x, y, style, label=f"{name} ({sum(b['count'] for b in bins)} grasps)")
+        for b in bins:
+            ax.annotate(str(b['count']), (b['p_f'], b['closure_rate']), textcoords='offset points', xytext=(4, 4),
+                        fontsize=8)
+    ax.set(xlim=(0, 1.02), ylim=(-0.02, 1.02), xlabel='P_F of the planned grasp (binned by 0.1)',
+           ylabel='closure rate on the true shape', title=title or 'Real captures: P_F vs closures')
+    ax.legend(loc='upper left', fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
