@@ -171,6 +171,31 @@ def print_ml_row(r: dict) -> None:
           f"{mm(r['sk']):>18}", flush=True)
 
 
+def likelihood_throughput(m: int = 25, repeats: int = 20) -> tuple[int, float, float, float]:
+    """(n, ms per likelihood evaluation, its GFLOP/s, one-thread dgemm GFLOP/s) on the search subset at M = m.
+
+    An evaluation's floating-point work is dominated by the Cholesky factorisation (n^3 / 3) and
+    the inverse from it (2 n^3 / 3); the O(n^2) kernel and trace passes are not counted.
+    """
+    from gpis_grasp_ros.core.gpis.hyperparameters import _search_subset
+    from gpis_grasp_ros.core.gpis.likelihood import _LikelihoodWorkspace, negative_log_marginal_likelihood
+
+    g, sdf, noise, mask = synthetic_object(m)
+    params = GpisParams()
+    obs = _observations_from(g.cell_centers()[mask], sdf[mask], noise[mask],
+                             gradient_observations(sdf, noise, mask, g, params.gradient_noise_variance))
+    eligible = np.abs(sdf[mask]) <= params.search_band_cells * g.resolution
+    sub = _search_subset(obs, params.max_opt_points, np.random.default_rng(params.seed), eligible)
+    ws = _LikelihoodWorkspace(sub)
+    resid = sub.y - np.where(sub.kind == VALUE, params.prior_mean, 0.0)
+    theta = np.log([1.5e-4, 0.014])
+    t_eval = timed(lambda: negative_log_marginal_likelihood(theta, ws, resid, sub.noise + params.jitter), repeats)[0]
+    a = np.random.default_rng(0).standard_normal((1000, 1000))
+    t_gemm = timed(lambda: a @ a, 5)[0]
+    n = sub.size
+    return n, t_eval, n ** 3 / t_eval / 1e6, 2e9 / t_gemm / 1e6
+
+
 def bench_bags(paths: list[str]) -> list[dict]:
     """Cold vs warm-from-perturbed fits on shipped bags: log likelihoods and GP-GPIS-OPT P_F (seed 0)."""
     from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
@@ -317,7 +342,10 @@ def main(argv: list[str] | None = None) -> int:
                   'err = max deviation from the dense joint value/gradient GP; rr = reduced-rank path')
             print(HEADER, flush=True)
             run(args.sizes, with_sklearn=not args.no_sklearn, dense_max=args.dense_max)
-        print(f'\nML fit: ms (min/median of {args.ml_repeats}), ev = likelihood evaluations, sub = search subset size')
+        n, t_eval, gflops, peak = likelihood_throughput()
+        print(f'\nlikelihood evaluation at n = {n}: {t_eval:.2f} ms, {gflops:.1f} GFLOP/s '
+              f'({100 * gflops / peak:.0f} % of this machine\'s one-thread dgemm, {peak:.1f} GFLOP/s)')
+        print(f'ML fit: ms (min/median of {args.ml_repeats}), ev = likelihood evaluations, sub = search subset size')
         print(ML_HEADER, flush=True)
         for m in args.sizes:
             print_ml_row(bench_ml(m, args.ml_repeats, with_sklearn=not args.no_sklearn))
