@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from gpis_grasp_ros.core.gpis import GpisParams, GpisPosterior, fit_gpis
+from gpis_grasp_ros.core.gpis import GpisParams, GpisPosterior, HyperparameterFit, fit_gpis
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sdf import signed_distance
 from gpis_grasp_ros.core.sensing import SensingResult
@@ -40,10 +40,13 @@ def publishable_grids(result: SensingResult) -> tuple[np.ndarray, np.ndarray, Gr
 
 
 def posterior_from_grids(occupancy: np.ndarray, noise: np.ndarray, geometry: GridGeometry,
-                         params: GpisParams = GpisParams()) -> GpisPosterior:
+                         params: GpisParams = GpisParams(), *,
+                         warm_start: HyperparameterFit | None = None) -> GpisPosterior:
     """Occupancy (0..100, -1 = missing) and noise map (m^2, NaN = excluded) → GPIS (section III-B).
 
     Missing cells count as object in the SDF but are not used for training, as in the paper.
+    ``warm_start``: the previous frame's ``posterior.hyperparameter_fit`` of the same scene
+    (see :func:`~gpis_grasp_ros.core.gpis.fit_gpis`).
     """
     occupancy = np.asarray(occupancy)
     noise = np.asarray(noise, dtype=np.float64)
@@ -59,4 +62,4 @@ def posterior_from_grids(occupancy: np.ndarray, noise: np.ndarray, geometry: Gri
     if np.any(noise[train] < 0):
         raise ValueError('the noise map has negative variances')
     distance = signed_distance(occupied, geometry.resolution)
-    return fit_gpis(distance, np.where(train, noise, 0.0), train, geometry, params)
+    return fit_gpis(distance, np.where(train, noise, 0.0), train, geometry, params, warm_start=warm_start)

@@ -26,22 +26,44 @@ Columns (times are the best of a few repeats, ms):
   ``--dense-max`` observations, i.e. M = 25); above that the reduced-rank path is compared with the
   exact Kronecker path where that is the default (M = 50; the exact path itself matches the dense
   reference to ~1e-12 in ``test_gpis``), and not at all at M = 100.
+
+Second table, the maximum-likelihood fit (min and median ms of ``--ml-repeats`` calls, each
+``time.perf_counter`` around the call, ``evals`` = likelihood evaluations):
+
+* cold:       :func:`fit_gpis` with the multi-start search (no previous fit).
+* warm:       the same with ``warm_start`` = the cold fit of this scene (a static scene at camera
+  rate: the score test keeps the previous C and l, one evaluation).
+* drifted:    ``warm_start`` = the cold fit with C x 1.5 and l x 0.85 (the test rejects it and
+  L-BFGS-B runs from there alone).
+* search:     the search alone (:func:`fit_hyperparameters`), cold / warm.
+* sklearn ML: ``GaussianProcessRegressor(...).fit`` with its L-BFGS-B optimiser
+  (``n_restarts_optimizer`` = ours, the same bounds and start) on the SDF values of
+  ``max_opt_points`` training cells drawn from the same search band: scikit-learn's value-only ML
+  fit on a Gram matrix of the size of ours (it has no derivative observations).
+
+``--bags`` adds a table over every shipped bag (bags/*.mcap, bags/head/*.mcap): the cold fit's log
+likelihood, warm fits from perturbed previous fits (small: C x 1.05, l x 0.97; large: C x 1.5,
+l x 0.85) and the GP-GPIS-OPT P_F (seed 0) on the cold and the warm posteriors.
 """
 
 from __future__ import annotations
 
 import argparse
+import glob
+import logging
 import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
 from gpis_grasp_ros.core.blur import gpis_blur
-from gpis_grasp_ros.core.gpis import GpisParams, GpisPosterior, blas_threads, fit_gpis
+from gpis_grasp_ros.core.gpis import GpisParams, GpisPosterior, HyperparameterFit, blas_threads, fit_gpis
+from gpis_grasp_ros.core.gpis.hyperparameters import fit_hyperparameters, hyperparameter_bounds
 from gpis_grasp_ros.core.gpis.kernel import _cross_joint, _DenseKernel
-from gpis_grasp_ros.core.gpis.observations import VALUE
+from gpis_grasp_ros.core.gpis.observations import VALUE, _observations_from, gradient_observations
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sdf import signed_distance
 
@@ -73,6 +95,135 @@ def best_of(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
         out = fn()
         best = min(best, time.perf_counter() - t0)
     return best * 1e3, out
+
+
+def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float, object]:
+    """(min ms, median ms, last result) of ``repeats`` calls, ``time.perf_counter`` around each."""
+    times, out = [], None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return min(times) * 1e3, float(np.median(times)) * 1e3, out
+
+
+def drifted(fit: HyperparameterFit, c_factor: float = 1.5, l_factor: float = 0.85) -> HyperparameterFit:
+    """A previous fit whose C and l are off by the given factors (the warm start of a drifted scene)."""
+    return replace(fit, signal_variance=fit.signal_variance * c_factor, length_scale=fit.length_scale * l_factor)
+
+
+def sklearn_ml_fit(g: GridGeometry, sdf: np.ndarray, noise: np.ndarray, mask: np.ndarray,
+                   params: GpisParams) -> Callable[[], object]:
+    """scikit-learn's value-only ML fit on ``max_opt_points`` band cells, same bounds, start and restarts."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel
+
+    (c_lo, c_hi), (l_lo, l_hi) = hyperparameter_bounds(g, params, max(0.0, -float(sdf.min())))
+    band = np.flatnonzero(np.abs(sdf[mask]) <= params.search_band_cells * g.resolution)
+    rng = np.random.default_rng(params.seed)
+    cells = rng.choice(band, min(band.size, params.max_opt_points), replace=False)
+    x, y = g.cell_centers()[mask][cells], sdf[mask][cells] - params.prior_mean
+    alpha = noise[mask][cells] + params.jitter
+    c0 = float(np.clip(np.mean(y ** 2), c_lo, c_hi))
+    l0 = float(np.clip(max(g.size_m) / 12.0, l_lo, l_hi))
+    kernel = ConstantKernel(c0, (c_lo, c_hi)) * RBF(l0, (l_lo, l_hi))
+
+    def fit() -> object:
+        return GaussianProcessRegressor(kernel=kernel, alpha=alpha, n_restarts_optimizer=params.n_restarts,
+                                        random_state=params.seed).fit(x, y)
+    return fit
+
+
+def bench_ml(m: int, repeats: int, with_sklearn: bool = True, seed: int = 0) -> dict:
+    """One row of the ML-fit table for an m x m grid."""
+    g, sdf, noise, mask = synthetic_object(m)
+    params = GpisParams(seed=seed)
+    fit_gpis(sdf, noise, mask, g, params)  # warm-up (compiled kernels)
+    cold = timed(lambda: fit_gpis(sdf, noise, mask, g, params), repeats)
+    prev = cold[2].hyperparameter_fit
+    warm = timed(lambda: fit_gpis(sdf, noise, mask, g, params, warm_start=prev), repeats)
+    drift = timed(lambda: fit_gpis(sdf, noise, mask, g, params, warm_start=drifted(prev)), repeats)
+    obs = _observations_from(g.cell_centers()[mask], sdf[mask], noise[mask],
+                             gradient_observations(sdf, noise, mask, g, params.gradient_noise_variance))
+    eligible = np.abs(sdf[mask]) <= params.search_band_cells * g.resolution
+    r_in = max(0.0, -float(sdf.min()))
+    s_cold = timed(lambda: fit_hyperparameters(g, obs, params, eligible, r_in), repeats)
+    s_warm = timed(lambda: fit_hyperparameters(g, obs, params, eligible, r_in, warm_start=prev), repeats)
+    row = dict(m=m, n_obs=prev.n_observations, cold=cold, warm=warm, drift=drift, s_cold=s_cold, s_warm=s_warm,
+               sk=(math.nan, math.nan, None))
+    if with_sklearn:
+        fit = sklearn_ml_fit(g, sdf, noise, mask, params)
+        fit()
+        row['sk'] = timed(fit, repeats)
+    return row
+
+
+ML_HEADER = (f"{'M':>4} {'sub':>4} | {'cold min/med':>13} {'ev':>3} | {'warm min/med':>13} {'ev':>3} | "
+             f"{'drifted min/med':>15} {'ev':>3} | {'search cold':>11} {'warm':>6} | {'sklearn ML min/med':>18}")
+
+
+def print_ml_row(r: dict) -> None:
+    def mm(t: tuple) -> str:
+        return f'{t[0]:.0f}/{t[1]:.0f}'
+    ev = {k: r[k][2].hyperparameter_fit.n_evaluations for k in ('cold', 'warm', 'drift')}
+    print(f"{r['m']:>4} {r['n_obs']:>4} | {mm(r['cold']):>13} {ev['cold']:>3} | {mm(r['warm']):>13} {ev['warm']:>3} | "
+          f"{mm(r['drift']):>15} {ev['drift']:>3} | {mm(r['s_cold']):>11} {mm(r['s_warm']):>6} | "
+          f"{mm(r['sk']):>18}", flush=True)
+
+
+def likelihood_throughput(m: int = 25, repeats: int = 20) -> tuple[int, float, float, float]:
+    """(n, ms per likelihood evaluation, its GFLOP/s, one-thread dgemm GFLOP/s) on the search subset at M = m.
+
+    An evaluation's floating-point work is dominated by the Cholesky factorisation (n^3 / 3) and
+    the inverse from it (2 n^3 / 3); the O(n^2) kernel and trace passes are not counted.
+    """
+    from gpis_grasp_ros.core.gpis.hyperparameters import _search_subset
+    from gpis_grasp_ros.core.gpis.likelihood import _LikelihoodWorkspace, negative_log_marginal_likelihood
+
+    g, sdf, noise, mask = synthetic_object(m)
+    params = GpisParams()
+    obs = _observations_from(g.cell_centers()[mask], sdf[mask], noise[mask],
+                             gradient_observations(sdf, noise, mask, g, params.gradient_noise_variance))
+    eligible = np.abs(sdf[mask]) <= params.search_band_cells * g.resolution
+    sub = _search_subset(obs, params.max_opt_points, np.random.default_rng(params.seed), eligible)
+    ws = _LikelihoodWorkspace(sub)
+    resid = sub.y - np.where(sub.kind == VALUE, params.prior_mean, 0.0)
+    theta = np.log([1.5e-4, 0.014])
+    t_eval = timed(lambda: negative_log_marginal_likelihood(theta, ws, resid, sub.noise + params.jitter), repeats)[0]
+    a = np.random.default_rng(0).standard_normal((1000, 1000))
+    t_gemm = timed(lambda: a @ a, 5)[0]
+    n = sub.size
+    return n, t_eval, n ** 3 / t_eval / 1e6, 2e9 / t_gemm / 1e6
+
+
+def bench_bags(paths: list[str]) -> list[dict]:
+    """Cold vs warm-from-perturbed fits on shipped bags: log likelihoods and GP-GPIS-OPT P_F (seed 0)."""
+    from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
+    from gpis_grasp_ros.core.planners import plan
+    from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
+    from gpis_grasp_ros.data.bags import load_bag
+
+    print(f"{'bag':<26} {'sub':>4} {'cold LL':>9} {'ev':>3} {'sqrt(C) mm':>10} {'l mm':>6} | "
+          f"{'small: LL':>10} {'ev':>3} | {'large: LL':>10} {'ev':>3} | {'P_F cold':>8} {'small':>6} {'large':>6}")
+    rows = []
+    for path in paths:
+        scene = load_bag(path)
+        result = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, SensingParams(),
+                                frame_id=scene.frame_id)
+        occ, noise, geometry = publishable_grids(result)
+        cold = posterior_from_grids(occ, noise, geometry)
+        fc = cold.hyperparameter_fit
+        small = posterior_from_grids(occ, noise, geometry, warm_start=drifted(fc, 1.05, 0.97))
+        large = posterior_from_grids(occ, noise, geometry, warm_start=drifted(fc))
+        pf = [plan('gp-gpis-opt', p, seed=0).p_f for p in (cold, small, large)]
+        name = str(Path(path).relative_to(Path(path).parents[1] if 'head' in Path(path).parts else Path(path).parent))
+        fs, fl = small.hyperparameter_fit, large.hyperparameter_fit
+        rows.append(dict(bag=name, cold=fc, small=fs, large=fl, pf=pf))
+        print(f'{name:<26} {fc.n_observations:>4} {fc.log_likelihood:>9.3f} {fc.n_evaluations:>3} '
+              f'{math.sqrt(fc.signal_variance) * 1e3:>10.2f} {fc.length_scale * 1e3:>6.2f} | '
+              f'{fs.log_likelihood:>10.3f} {fs.n_evaluations:>3} | {fl.log_likelihood:>10.3f} {fl.n_evaluations:>3} | '
+              f'{pf[0]:>8.3f} {pf[1]:>6.3f} {pf[2]:>6.3f}', flush=True)
+    return rows
 
 
 def sklearn_reference(g: GridGeometry, sdf: np.ndarray, noise: np.ndarray, mask: np.ndarray, c: float, ell: float,
@@ -178,12 +329,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--no-sklearn', action='store_true', help='skip the scikit-learn reference')
     parser.add_argument('--dense-max', type=int, default=4000,
                         help='largest observation count checked against the dense joint reference')
+    parser.add_argument('--ml-repeats', type=int, default=7, help='calls per timing of the ML-fit table')
+    parser.add_argument('--no-fit-table', action='store_true', help='only the ML-fit table (and --bags)')
+    parser.add_argument('--bags', action='store_true',
+                        help='also the cold vs warm table over every shipped bag (bags/*.mcap, bags/head/*.mcap)')
     parser.add_argument('--blas-threads', type=int, default=1,
                         help='BLAS threads for every timed call, ours and scikit-learn alike (0 = library default)')
     args = parser.parse_args(argv)
-    print(f'GPIS benchmark: times in ms (best of repeats), BLAS threads: {args.blas_threads or "default"}; '
-          'err = max deviation from the dense joint value/gradient GP; rr = reduced-rank path')
-    print(HEADER, flush=True)
     with blas_threads(args.blas_threads):
-        run(args.sizes, with_sklearn=not args.no_sklearn, dense_max=args.dense_max)
+        if not args.no_fit_table:
+            print(f'GPIS benchmark: times in ms (best of repeats), BLAS threads: {args.blas_threads or "default"}; '
+                  'err = max deviation from the dense joint value/gradient GP; rr = reduced-rank path')
+            print(HEADER, flush=True)
+            run(args.sizes, with_sklearn=not args.no_sklearn, dense_max=args.dense_max)
+        n, t_eval, gflops, peak = likelihood_throughput()
+        print(f'\nlikelihood evaluation at n = {n}: {t_eval:.2f} ms, {gflops:.1f} GFLOP/s '
+              f'({100 * gflops / peak:.0f} % of this machine\'s one-thread dgemm, {peak:.1f} GFLOP/s)')
+        print(f'ML fit: ms (min/median of {args.ml_repeats}), ev = likelihood evaluations, sub = search subset size')
+        print(ML_HEADER, flush=True)
+        for m in args.sizes:
+            print_ml_row(bench_ml(m, args.ml_repeats, with_sklearn=not args.no_sklearn))
+        if args.bags:
+            logging.getLogger('gpis_grasp_ros').setLevel(logging.ERROR)  # binding bounds are in the table
+            root = Path(__file__).resolve().parents[2] / 'bags'
+            print('\nShipped bags: cold vs warm-started fits (LL = log likelihood on the search subset, nats)')
+            bench_bags(sorted(glob.glob(str(root / '*.mcap'))) + sorted(glob.glob(str(root / 'head' / '*.mcap'))))
     return 0

@@ -18,7 +18,7 @@ from gpis_grasp_ros.core.gpis import (
     hyperparameters,
     posterior_from_data,
 )
-from gpis_grasp_ros.core.gpis.kernel import _DenseKernel
+from gpis_grasp_ros.core.gpis.likelihood import _LikelihoodWorkspace
 from gpis_grasp_ros.core.gpis.observations import _Observations
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.pipeline import posterior_from_grids
@@ -442,7 +442,7 @@ def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypa
 def test_negative_log_likelihood_raises_on_singular_matrix_and_has_the_right_gradient():
     g = GridGeometry(0.0, 0.0, 0.01, 8, 8)
     obs = _joint_draw(g, 4e-4, 0.02, -0.01, 1e-7, 1e-3, np.random.default_rng(5))
-    kern = _DenseKernel(obs)
+    kern = _LikelihoodWorkspace(obs)
     resid = obs.y - np.where(obs.kind == 0, -0.01, 0.0)
     theta = np.log([3e-4, 0.017])
     h = 1e-6
@@ -454,7 +454,7 @@ def test_negative_log_likelihood_raises_on_singular_matrix_and_has_the_right_gra
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-4)
     same = _Observations.build(np.zeros((2, 2)), np.zeros(2), np.zeros(2))  # two identical noise-free points
     with pytest.raises(np.linalg.LinAlgError):
-        gp.negative_log_marginal_likelihood(theta, _DenseKernel(same), np.ones(2), np.zeros(2))
+        gp.negative_log_marginal_likelihood(theta, _LikelihoodWorkspace(same), np.ones(2), np.zeros(2))
 
 
 @pytest.mark.parametrize('max_exact', [2500, 0])

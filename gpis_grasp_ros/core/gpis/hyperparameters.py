@@ -13,11 +13,15 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
-from scipy.linalg.lapack import dpotri
 from scipy.optimize import minimize
+from scipy.stats import chi2
 
-from gpis_grasp_ros.core.gpis.kernel import _DenseKernel
+from gpis_grasp_ros.core.gpis.likelihood import (
+    _LikelihoodWorkspace,
+    fisher_information,
+    negative_log_marginal_likelihood,
+    profile_signal_variance,
+)
 from gpis_grasp_ros.core.gpis.observations import VALUE, _Observations
 from gpis_grasp_ros.core.gpis.threads import blas_threads
 from gpis_grasp_ros.core.grid import GridGeometry
@@ -25,7 +29,6 @@ from gpis_grasp_ros.core.grid import GridGeometry
 if TYPE_CHECKING:  # pragma: no cover
     from gpis_grasp_ros.core.gpis.regression import GpisParams
 
-LOG_2PI = math.log(2.0 * math.pi)
 logger = logging.getLogger(__name__)
 
 
@@ -41,6 +44,10 @@ class HyperparameterFit:
     treats them as a wall; logged); ``failed_starts`` counts starts at which the factorisation
     failed, so that L-BFGS-B could not move from them. ``ok`` is False when no start produced a
     finite likelihood: the search then keeps the start values (logged as an error).
+
+    A warm-started fit (``warm_started``) began at a previous fit's C and l; ``drift_statistic`` is
+    the score statistic there and ``searched`` tells whether it exceeded its threshold so that
+    L-BFGS-B ran (docs/gpis-model.md, Warm start).
     """
 
     signal_variance: float  # C, m^2
@@ -53,42 +60,10 @@ class HyperparameterFit:
     n_starts: int = 1
     n_observations: int = 0  # size of the search subset (values + gradient components)
     ok: bool = True
-
-
-def negative_log_marginal_likelihood(log_theta: np.ndarray, kernel: _DenseKernel, resid: np.ndarray,
-                                     noise: np.ndarray) -> tuple[float, np.ndarray]:
-    """-log p(y | X, C, l) and its gradient in (log C, log l) (Rasmussen & Williams eqs. 5.8, 5.9).
-
-    ``kernel`` is the joint value/gradient Gram matrix of the observations as a function of l,
-    ``resid`` = y - m (values) or the gradient observation, ``noise`` per-observation variances
-    (jitter included). Raises ``numpy.linalg.LinAlgError`` when K + N is not numerically
-    positive definite (the caller records it; no silent substitute value).
-    """
-    c, ell = math.exp(log_theta[0]), math.exp(log_theta[1])
-    k0, dk0 = kernel(ell, with_dlog=True)
-    a = c * k0
-    a[np.diag_indices_from(a)] += noise
-    cf = cho_factor(a, lower=True, check_finite=False)  # raises LinAlgError if not positive definite
-    alpha = cho_solve(cf, resid, check_finite=False)
-    n = resid.size
-    nll = 0.5 * float(resid @ alpha) + float(np.sum(np.log(np.diag(cf[0])))) + 0.5 * n * LOG_2PI
-    # d nll / d theta = -1/2 tr((alpha alpha^T - A^-1) dA/dtheta); A^-1 is needed for the trace term
-    # (R&W Algorithm 5.1) and is formed from the Cholesky factor (LAPACK potri); it never solves a system.
-    inv, info = dpotri(cf[0], lower=1)
-    if info != 0:
-        raise np.linalg.LinAlgError(f'potri failed with info={info}')
-    inv_lower = np.tril(inv)  # potri fills the lower triangle only; A^-1 and dA/dtheta are symmetric
-
-    def trace_inv(b: np.ndarray) -> float:  # tr(A^-1 B) for symmetric B from the lower triangle
-        return 2.0 * float(np.vdot(inv_lower, b)) - float(np.dot(np.diag(inv_lower), np.diag(b)))
-
-    grad = 0.5 * np.array([
-        c * (trace_inv(k0) - float(alpha @ (k0 @ alpha))),  # dA / dlog C = C k0
-        c * (trace_inv(dk0) - float(alpha @ (dk0 @ alpha))),  # dA / dlog l = C dk0 / dlog l
-    ])
-    if not (math.isfinite(nll) and np.all(np.isfinite(grad))):
-        raise np.linalg.LinAlgError('non-finite marginal likelihood')
-    return nll, grad
+    n_evaluations: int = 0  # likelihood evaluations (each one Cholesky of the search subset)
+    warm_started: bool = False
+    searched: bool = True  # False: a warm start whose previous C and l the score test kept
+    drift_statistic: float = math.nan  # score statistic at the warm start (chi^2 with 1-2 dof)
 
 
 def hyperparameter_bounds(geometry: GridGeometry, params: GpisParams,
@@ -123,6 +98,8 @@ def initial_hyperparameters(geometry: GridGeometry, train_y: np.ndarray, params:
 
 
 _WALL = 1e25  # objective value L-BFGS-B sees where K + N cannot be factorised (counted and logged)
+_PROFILE_STEPS, _PROFILE_TOL = 1, 0.05  # C steps of a start (profile_signal_variance) and when to stop them
+_BASIN = 0.05  # a restart whose iterate comes this close (in log C and log l) to a found optimum is stopped
 
 
 def _search_subset(obs: _Observations, max_points: int, rng: np.random.Generator,
@@ -143,48 +120,121 @@ def _search_subset(obs: _Observations, max_points: int, rng: np.random.Generator
 
 
 def fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: GpisParams,
-                        eligible: np.ndarray | None = None,
-                        inscribed_radius_m: float | None = None) -> HyperparameterFit:
+                        eligible: np.ndarray | None = None, inscribed_radius_m: float | None = None,
+                        warm_start: HyperparameterFit | None = None) -> HyperparameterFit:
     """Maximum-marginal-likelihood C (m^2) and l (m) from values and gradient observations.
 
     L-BFGS-B on (log C, log l) within :func:`hyperparameter_bounds`, on a seeded subset of at most
     ``max_opt_points`` observations. Binding bounds and Cholesky failures are logged and
     reported on the returned :class:`HyperparameterFit`.
+
+    ``warm_start`` (the previous frame's fit of the same scene) replaces the multi-start search:
+    its C and l are kept when the score test at ``params.warm_start_significance`` does not reject
+    them on this data, else L-BFGS-B runs from them alone (docs/gpis-model.md, Warm start).
     """
     with blas_threads(params.blas_threads):
-        return _fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius_m)
+        return _fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius_m, warm_start)
+
+
+def _drift_statistic(x: np.ndarray, grad: np.ndarray, log_bounds: list[tuple[float, float]],
+                     workspace: _LikelihoodWorkspace, noise: np.ndarray) -> tuple[float, int]:
+    """Score statistic g_F^T I_FF^-1 g_F at ``x`` and its degrees of freedom |F|.
+
+    F are the coordinates free to move: a coordinate on a bound whose gradient points out of the
+    box cannot (its Karush-Kuhn-Tucker condition holds). I is the Fisher information. Under the
+    hypothesis that the data are a draw of the GP with these hyperparameters the statistic is
+    chi^2 with |F| degrees of freedom; it is also twice the likelihood gain a Fisher-scoring step
+    predicts.
+    """
+    free = []
+    for i, (lo, hi) in enumerate(log_bounds):
+        blocked = (x[i] <= lo + 1e-9 and grad[i] > 0) or (x[i] >= hi - 1e-9 and grad[i] < 0)
+        if not blocked:
+            free.append(i)
+    if not free:
+        return 0.0, 0
+    info = fisher_information(workspace, noise)[np.ix_(free, free)]
+    g = grad[free]
+    try:
+        return float(g @ np.linalg.solve(info, g)), len(free)
+    except np.linalg.LinAlgError:  # pragma: no cover - singular information: treat as drifted
+        return math.inf, len(free)
 
 
 def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: GpisParams,
-                         eligible: np.ndarray | None, inscribed_radius_m: float | None) -> HyperparameterFit:
+                         eligible: np.ndarray | None, inscribed_radius_m: float | None,
+                         warm_start: HyperparameterFit | None = None) -> HyperparameterFit:
     rng = np.random.default_rng(params.seed)
     sub = _search_subset(obs, params.max_opt_points, rng, eligible)
-    kernel = _DenseKernel(sub)
+    workspace = _LikelihoodWorkspace(sub)
     resid = sub.y - np.where(sub.kind == VALUE, params.prior_mean, 0.0)
     noise = sub.noise + params.jitter
     (c_lo, c_hi), (l_lo, l_hi) = bounds = hyperparameter_bounds(geometry, params, inscribed_radius_m)
     log_bounds = [(math.log(c_lo), math.log(c_hi)), (math.log(l_lo), math.log(l_hi))]
-    c0, l0 = initial_hyperparameters(geometry, sub.y[:sub.n_values], params, inscribed_radius_m)
-    starts = [np.log([np.clip(c0, c_lo, c_hi), np.clip(l0, l_lo, l_hi)])]
-    for _ in range(params.n_restarts):
-        starts.append(np.array([rng.uniform(*log_bounds[0]), rng.uniform(*log_bounds[1])]))
-    failures = [0]
+    failures, evaluations = [0], [0]
+
+    last: list = [None, None]  # (x, (f, g)) of the last evaluation: L-BFGS-B re-evaluates its start
 
     def objective(x: np.ndarray) -> tuple[float, np.ndarray]:
+        if last[0] is not None and np.array_equal(x, last[0]):
+            return last[1][0], last[1][1].copy()
+        evaluations[0] += 1
         try:
-            return negative_log_marginal_likelihood(x, kernel, resid, noise)
+            out = negative_log_marginal_likelihood(x, workspace, resid, noise)
         except np.linalg.LinAlgError:
             failures[0] += 1
-            return _WALL, np.zeros(2)
+            out = (_WALL, np.zeros(2))
+        last[:] = [np.array(x, dtype=np.float64), out]
+        return out[0], out[1].copy()
 
-    best_x, best_f, failed_starts = starts[0], math.inf, 0
-    for x0 in starts:
+    def profiled(x: np.ndarray, f: float) -> tuple[np.ndarray, float]:
+        # C steps to the closed-form optimum given l (profile_signal_variance) from an evaluated start
+        for _ in range(_PROFILE_STEPS):
+            step = profile_signal_variance(workspace)
+            if abs(step) < _PROFILE_TOL:
+                break
+            y = np.array([np.clip(x[0] + step, *log_bounds[0]), x[1]])
+            fy = objective(y)[0]
+            if not fy < f:
+                break
+            x, f = y, fy
+        return x, f
+
+    warm, drift, searched, f_prev = warm_start is not None and warm_start.ok, math.nan, True, math.inf
+    if warm:
+        x_prev = np.array([np.clip(math.log(warm_start.signal_variance), *log_bounds[0]),
+                           np.clip(math.log(warm_start.length_scale), *log_bounds[1])])
+        f_prev, g_prev = objective(x_prev)
+        warm = f_prev < _WALL  # no likelihood at the previous values: search cold
+        if warm:
+            starts = [x_prev]
+            drift, dof = _drift_statistic(x_prev, g_prev, log_bounds, workspace, noise)
+            searched = dof > 0 and drift > chi2.isf(params.warm_start_significance, dof)
+    if not warm:
+        c0, l0 = initial_hyperparameters(geometry, sub.y[:sub.n_values], params, inscribed_radius_m)
+        starts = [np.log([np.clip(c0, c_lo, c_hi), np.clip(l0, l_lo, l_hi)])]
+        for _ in range(params.n_restarts):
+            starts.append(np.array([rng.uniform(*log_bounds[0]), rng.uniform(*log_bounds[1])]))
+
+    best_x, best_f, failed_starts = starts[0], (math.inf if searched else f_prev), 0
+    optima: list[np.ndarray] = []
+
+    def same_basin(intermediate_result) -> None:  # a restart that reaches a found optimum would end there
+        if any(np.max(np.abs(intermediate_result.x - x)) < _BASIN for x in optima):
+            raise StopIteration
+
+    for x0 in (starts if searched else []):
         before = failures[0]
-        f0 = objective(x0)[0]
+        f0 = f_prev if warm else objective(x0)[0]
         if failures[0] > before:
             failed_starts += 1
             continue  # L-BFGS-B cannot move from a start without a likelihood
-        res = minimize(objective, x0, jac=True, method='L-BFGS-B', bounds=log_bounds, options={'maxiter': 200})
+        if not warm:
+            x0, f0 = profiled(x0, f0)
+        res = minimize(objective, x0, jac=True, method='L-BFGS-B', bounds=log_bounds, options={'maxiter': 200},
+                       callback=same_basin if optima else None)
+        if res.fun < _WALL and res.status != 99:  # 99: stopped in a found optimum's basin
+            optima.append(np.array(res.x))
         fun = float(res.fun) if res.fun < _WALL else f0
         x = res.x if res.fun < _WALL else x0
         if fun < best_f:
@@ -209,4 +259,6 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                        'l = %.3g m in [%.3g, %.3g]', ', '.join(hits), c, c_lo, c_hi, ell, l_lo, l_hi)
     return HyperparameterFit(signal_variance=c, length_scale=ell, log_likelihood=-best_f if ok else math.nan,
                              bounds=bounds, bound_hits=tuple(hits), cholesky_failures=failures[0],
-                             failed_starts=failed_starts, n_starts=len(starts), n_observations=sub.size, ok=ok)
+                             failed_starts=failed_starts, n_starts=len(starts), n_observations=sub.size, ok=ok,
+                             n_evaluations=evaluations[0], warm_started=warm, searched=searched,
+                             drift_statistic=drift)

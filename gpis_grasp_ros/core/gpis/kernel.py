@@ -71,8 +71,8 @@ class _DenseKernel:
 
     Per axis the factor of :func:`_pair_factor` is w00 + (s d + w11) / l^2 - w11 d^2 / l^4 with
     w00 = [p = q = 0], w11 = [p = q = 1], s = [q = 1] - [p = 1] (p, q: derivative orders of the
-    row and column observation), precomputed once so that each likelihood evaluation is a few
-    element-wise passes.
+    row and column observation), precomputed once. The conditioning's off-grid path uses it; the
+    likelihood's compiled pass (likelihood._gram_lower) evaluates the same formula and is tested against it.
     """
 
     def __init__(self, obs: _Observations) -> None:

@@ -22,12 +22,12 @@ from gpis_grasp_ros.core.gpis.basis import (
     _precision_on_grid,
 )
 from gpis_grasp_ros.core.gpis.hyperparameters import (
-    LOG_2PI,
     HyperparameterFit,
     fit_hyperparameters,
     initial_hyperparameters,
 )
 from gpis_grasp_ros.core.gpis.kernel import KernelParams, _DenseKernel, _se_1d
+from gpis_grasp_ros.core.gpis.likelihood import LOG_2PI
 from gpis_grasp_ros.core.gpis.observations import (
     GRAD_X,
     GRAD_Y,
@@ -64,6 +64,7 @@ class GpisParams:
     length_scale_max_extent: float = 1.0 / 6.0  # upper bound on l as a multiple of the grid extent E
     length_scale_max_thickness: float | None = 3.0  # upper bound on l as a multiple of the inscribed radius r_in
     signal_std_bounds: tuple[float, float] = (1e-3, 10.0)  # sqrt(C) x grid extent
+    warm_start_significance: float = 0.05  # level of the score test that keeps a warm start's C and l
 
     def __post_init__(self) -> None:
         if self.jitter < 0 or not math.isfinite(self.jitter):
@@ -82,6 +83,8 @@ class GpisParams:
         if not (0 < self.length_scale_min_cells and 0 < self.length_scale_max_extent < math.inf):
             raise ValueError('length_scale_min_cells and length_scale_max_extent must be positive, got '
                              f'{self.length_scale_min_cells}, {self.length_scale_max_extent}')
+        if not (0 < self.warm_start_significance < 1):
+            raise ValueError(f'warm_start_significance must be in (0, 1), got {self.warm_start_significance}')
         lo, hi = self.signal_std_bounds
         if not (0 < lo < hi and math.isfinite(hi)):
             raise ValueError(f'signal_std_bounds must satisfy 0 < low < high, got {self.signal_std_bounds}')
@@ -210,7 +213,7 @@ def _exact_variance(chol_lower: np.ndarray, c: float, kx_star: np.ndarray, ky_st
 
 
 def fit_gpis(sdf_m: np.ndarray, noise_variance_m2: np.ndarray, train_mask: np.ndarray, geometry: GridGeometry,
-             params: GpisParams = GpisParams()) -> GpisPosterior:
+             params: GpisParams = GpisParams(), *, warm_start: HyperparameterFit | None = None) -> GpisPosterior:
     """GPIS posterior from a grid SDF and noise map (sections III-A, III-B, V-A).
 
     Args:
@@ -219,6 +222,9 @@ def fit_gpis(sdf_m: np.ndarray, noise_variance_m2: np.ndarray, train_mask: np.nd
         train_mask: ``(H, W)`` bool, cells used for training (missing measurements excluded).
         geometry: placement of the grid (cell centres are the training inputs, m).
         params: prior mean, gradient observations, hyperparameter search, numerical settings.
+        warm_start: the previous frame's :class:`HyperparameterFit` of the same scene
+            (``posterior.hyperparameter_fit``): the search starts there and runs only when the
+            likelihood rejects it (:func:`fit_hyperparameters`); None = cold multi-start search.
 
     Returns:
         :class:`GpisPosterior` with mean (eq. 1), variance (eq. 2), mean gradient, joint
@@ -248,7 +254,7 @@ def fit_gpis(sdf_m: np.ndarray, noise_variance_m2: np.ndarray, train_mask: np.nd
             eligible = None
             if params.search_band_cells is not None:
                 eligible = np.abs(sdf[mask]) <= params.search_band_cells * geometry.resolution
-            fit = fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius)
+            fit = fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius, warm_start)
             c, ell = fit.signal_variance, fit.length_scale
         else:
             c, ell = initial_hyperparameters(geometry, obs.y[:obs.n_values], params, inscribed_radius)
