@@ -34,13 +34,7 @@ from gpis_grasp_ros.core.sensing.clear_body import (
 )
 from gpis_grasp_ros.core.sensing.evidence import ColourModel, chromaticity_distance, shadow_line_distance
 from gpis_grasp_ros.core.sensing.morphology import nearest_pixel
-from gpis_grasp_ros.core.sensing.objects import (
-    minimum_width,
-    object_height,
-    split_discontinuous,
-    split_flat_support,
-    split_touching,
-)
+from gpis_grasp_ros.core.sensing.objects import minimum_width, object_height, split_flat_support, split_touching
 from gpis_grasp_ros.core.sensing.occlusion import column_zbuffer, occlusion_shadow_pixels, see_through_pixels
 from gpis_grasp_ros.core.sensing.params import TARGET_MODES, SensingParams, SensingResult
 from gpis_grasp_ros.core.sensing.segment import segment_frames
@@ -49,6 +43,5 @@ __all__ = [
     'TARGET_MODES', 'CameraIntrinsics', 'ColourModel', 'SensingParams', 'SensingResult', 'chromatic_extension',
     'chromaticity_distance', 'clear_body_height', 'column_zbuffer', 'frames_from_clouds', 'minimum_width',
     'nearest_pixel', 'object_height', 'occlusion_shadow_pixels', 'prism_footprint', 'see_through_pixels',
-    'seen_through', 'segment_frames', 'shadow_line_distance', 'split_discontinuous', 'split_flat_support',
-    'split_touching',
+    'seen_through', 'segment_frames', 'shadow_line_distance', 'split_flat_support', 'split_touching',
 ]

@@ -13,7 +13,6 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
-from gpis_grasp_ros.core.sensing.continuity import solid_height, surface_pieces
 from gpis_grasp_ros.core.sensing.evidence import Evidence
 from gpis_grasp_ros.core.sensing.morphology import _filled, _flood, _nearest_label, _reconstruct
 from gpis_grasp_ros.core.sensing.params import (
@@ -96,60 +95,6 @@ def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, n
     return out, np.asarray(origin)
 
 
-def split_discontinuous(labels: np.ndarray, piece_cells: np.ndarray, min_cells: float,
-                        origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Split a component into the 3D-continuous surfaces it holds (objects touching at a height step).
-
-    ``piece_cells`` is the continuous surface piece (:func:`~.continuity.surface_pieces`) holding most of each
-    raster cell's solid pixels (0 = none). A component with two or more pieces of at least ``min_cells`` cells
-    (the minimum object) is divided: those pieces are the markers, and its other cells (smaller pieces, colour
-    and hole evidence) go to the piece they are deepest in (watershed of -DT). One object whose parts stand at
-    different heights is one piece (its sloping surfaces join them) and is not split.
-
-    Returns the labels and the origin of every label (see :func:`split_touching`)."""
-    n = int(labels.max()) + 1
-    origin = list(np.arange(n) if origin is None else np.asarray(origin))
-    out = labels.astype(np.int32).copy()
-    inside = (labels > 0) & (piece_cells > 0)
-    if not inside.any():
-        return out, np.asarray(origin)
-    pairs, counts = np.unique(np.stack([labels[inside], piece_cells[inside]], axis=1), axis=0, return_counts=True)
-    dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
-    for lab in np.unique(pairs[:, 0]):
-        big = pairs[(pairs[:, 0] == lab) & (counts >= min_cells), 1]
-        if big.size < 2:
-            continue
-        comp = labels == lab
-        markers = np.zeros(labels.shape, np.int32)
-        for k, piece in enumerate(big):
-            markers[comp & (piece_cells == piece)] = k + 1
-        n_mark = big.size
-        flooded = _flood(markers, dist, comp)
-        for part in range(2, n_mark + 1):
-            sel = comp & (flooded == part)
-            if sel.any():
-                out[sel] = len(origin)
-                origin.append(int(origin[lab]) if lab < len(origin) else int(lab))
-    return out, np.asarray(origin)
-
-
-def _piece_cells(ix: np.ndarray, iy: np.ndarray, sel: np.ndarray, pieces: np.ndarray,
-                 shape: tuple[int, int]) -> np.ndarray:
-    """The surface piece holding most of each raster cell's selected pixels (0 = none)."""
-    ny, nx = shape
-    cell = (iy[sel] * nx + ix[sel]).astype(np.int64)
-    piece = pieces[sel].astype(np.int64)
-    out = np.zeros(ny * nx, np.int64)
-    if cell.size == 0:
-        return out.reshape(ny, nx)
-    pairs, counts = np.unique(np.stack([cell, piece], axis=1), axis=0, return_counts=True)
-    order = np.lexsort((counts, pairs[:, 0]))  # by cell, then count: the last of each cell is its majority
-    pairs = pairs[order]
-    last = np.r_[pairs[1:, 0] != pairs[:-1, 0], True]
-    out[pairs[last, 0]] = pairs[last, 1]
-    return out.reshape(ny, nx)
-
-
 def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
                        origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Split an object standing on or next to a flat one (a notebook, a plate, a tray) from it.
@@ -163,8 +108,7 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
     *above* it (something taller standing on or next to it), the component is split:
     the flat region is one object, the rest is assigned to the flat region or to the other parts by a
     watershed of -DT (cells go to the part they are deepest in), each other part keeping its own label.
-    A box's flat top is not a support: the feet of its walls lie *below* it; nor is a smooth curved surface
-    whose heights span more than the jump (a lying flashlight's body under its wider head). Limitation: one object
+    A box's flat top is not a support: the feet of its walls lie *below* it. Limitation: one object
     made of a large flat base and a taller part (a tray with a handle) is split too.
 
     Returns the labels and the origin of every label (see :func:`split_touching`)."""
@@ -204,9 +148,7 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
         if sizes[flat] < min_cells:
             continue
         flat_cells = smooth == flat
-        h_lo, h_flat, h_hi = np.percentile(h[flat_cells], [5.0, 50.0, 95.0])
-        if h_hi - h_lo > FLAT_JUMP_M:  # not flat: a curved surface (a lying cylinder) is no support
-            continue
+        h_flat = float(np.median(h[flat_cells]))
         other = comp & seen & ~flat_cells & (h > h_flat + FLAT_JUMP_M)
         if other.sum() < min_cells / 4:
             continue
@@ -254,8 +196,8 @@ def _merge_across_small_holes(labels: np.ndarray, lab_miss: np.ndarray, n_miss: 
 
 
 def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.ndarray, inlier_xy: np.ndarray,
-                      footprint_m: float, attach_m: float, pieces: np.ndarray | None = None,
-                      min_area_m2: float = 0.0, height: np.ndarray | None = None) -> tuple[_Raster, np.ndarray]:
+                      footprint_m: float, attach_m: float,
+                      height: np.ndarray | None = None) -> tuple[_Raster, np.ndarray]:
     """Rasterise the evidence pixels' feet over the table's extent and label connected components.
 
     Components are built from the positive evidence (depth or colour). Holes (missing pixels) are
@@ -289,9 +231,6 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
 
     n_pos, lab_pos = cv2.connectedComponents(mark(use & ~missing), connectivity=8)
     lab_pos, origin = split_touching(lab_pos, SPLIT_NECK_M / res)  # objects in contact
-    if pieces is not None:  # objects touching at a height step: their surfaces are not continuous
-        piece_cells = _piece_cells(ix, iy, use & (pieces > 0), pieces, (ny, nx))
-        lab_pos, origin = split_discontinuous(lab_pos, piece_cells, min_area_m2 / res ** 2, origin)
     if height is not None:  # an object standing on / next to a flat one (notebook, plate)
         seen = use & ~missing & np.isfinite(height)
         h_sum = np.bincount(iy[seen] * nx + ix[seen], weights=height[seen], minlength=nx * ny)
@@ -325,31 +264,14 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
     return raster, px_labels
 
 
-def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, support: np.ndarray,
-                  params: SensingParams) -> np.ndarray:
-    """Labels of the components that are objects, not sensor noise.
-
-    An object covers at least ``min_object_area_px`` pixels and ``min_object_area_m2`` of the table, and as
-    much table area of *solid* evidence (``support``: pixels surely above the table's noise, or without a
-    return, which may be anything): depth noise just above the threshold, or a flat print seen only in colour,
-    is not an object."""
+def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
+                   intr: CameraIntrinsics) -> tuple[int, int]:
+    """Label of the target component and the number of objects seen (``target`` mode)."""
     n_lab = int(raster.labels.max()) + 1
     px_count = np.bincount(px_labels.ravel(), minlength=n_lab)
     area_m2 = np.bincount(raster.labels.ravel(), minlength=n_lab) * raster.res ** 2
-    ix, iy, ok = raster.cell(foot_xy)
-    sel = support & (px_labels > 0) & ok
-    cells = np.unique(np.stack([px_labels[sel], iy[sel] * raster.labels.shape[1] + ix[sel]], axis=1), axis=0)
-    solid_m2 = np.bincount(cells[:, 0], minlength=n_lab) * raster.res ** 2 if cells.size else np.zeros(n_lab)
-    kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2)
-                      & (solid_m2 >= params.min_object_area_m2))[0]
-    return kept[kept > 0]
-
-
-def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
-                   intr: CameraIntrinsics, kept: np.ndarray) -> tuple[int, int]:
-    """Label of the target among the objects ``kept`` and the number of objects seen (``target`` mode)."""
-    n_lab = int(raster.labels.max()) + 1
-    area_m2 = np.bincount(raster.labels.ravel(), minlength=n_lab) * raster.res ** 2
+    kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2))[0]
+    kept = kept[kept > 0]
     if kept.size == 0:
         raise ValueError(f'no object found on the table: no region of at least {params.min_object_area_px} px and '
                          f'{params.min_object_area_m2 * 1e4:.1f} cm^2 stands out from the table in depth or colour '
@@ -451,7 +373,6 @@ class Objects(NamedTuple):
     target: int  # the target's label
     objects_seen: int  # components kept (not specks)
     target_px: np.ndarray  # (H, W) bool, the target's evidence pixels
-    kept: np.ndarray  # labels of the objects (components that are not sensor noise)
 
 
 def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarray,
@@ -480,13 +401,9 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
     rim = inlier & ~cv2.erode(inlier.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                               borderValue=0).astype(bool)
     inlier_xy = foot_xy[rim]
-    h_solid = solid_height(meas.z_safe, height[inlier], meas.z_safe[inlier], params.sensor, fit.h_thr)
-    solid = evidence & (ev.p_d > 0.5) & (np.nan_to_num(height) >= h_solid)
-    pieces = surface_pieces(np.where(solid, meas.z_safe, np.nan), solid, meas.var_z, min(intrinsics.fx, intrinsics.fy))
     raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
-                                          pieces, params.min_object_area_m2, np.where(ev.p_d > 0.5, height, np.nan))
-    kept = object_labels(px_labels, raster, foot_xy, solid | (missing_px & evidence), params)
-    target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics, kept)
+                                          np.where(ev.p_d > 0.5, height, np.nan))
+    target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics)
     target_px = px_labels == target
     _check_target(target_px, foot_xy[target_px], raster.labels == target, raster.res, params, intrinsics)
-    return Objects(raster, px_labels, target, objects_seen, target_px, kept)
+    return Objects(raster, px_labels, target, objects_seen, target_px)
