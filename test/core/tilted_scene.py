@@ -48,6 +48,8 @@ class TiltedScene:
     height: int = 480
     focal_px: float = 570.0  # VGA, like the Carmine
     shadows: list[tuple[float, float, float, float, float]] = field(default_factory=list)  # (x0, y0, x1, y1, gain)
+    prints: list[tuple[float, float, float, float, tuple[float, float, float]]] = field(default_factory=list)
+    #       flat marks on the table: (x0, y0, x1, y1, rgb)
 
     @property
     def normal(self) -> np.ndarray:
@@ -120,6 +122,10 @@ class TiltedScene:
             sh = (label == 0) & (table_xy[..., 0] >= x0) & (table_xy[..., 0] <= x1) & (table_xy[..., 1] >= y0) \
                 & (table_xy[..., 1] <= y1)
             rgb[sh] *= gain
+        for x0, y0, x1, y1, colour in self.prints:
+            mark = (label == 0) & (table_xy[..., 0] >= x0) & (table_xy[..., 0] <= x1) & (table_xy[..., 1] >= y0) \
+                & (table_xy[..., 1] <= y1)
+            rgb[mark] = colour
         for k, b in enumerate(self.boxes, start=1):
             rgb[label == k] = b.rgb
         return depth, rgb, label
