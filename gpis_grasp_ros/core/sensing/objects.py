@@ -111,8 +111,12 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
     *above* it (something taller standing on or next to it), the component is split:
     the flat region is one object, the rest is assigned to the flat region or to the other parts by a
     watershed of -DT (cells go to the part they are deepest in), each other part keeping its own label.
-    A box's flat top is not a support: the feet of its walls lie *below* it. Limitation: one object
-    made of a large flat base and a taller part (a tray with a handle) is split too.
+    A box's flat top is not a support: the feet of its walls lie *below* it. Nor is a smooth region whose
+    heights (5th to 95th percentile) span more than ``FLAT_JUMP_M``: a support is flat to within the jump
+    that tells what stands on it, while a lying cylinder's smooth crest (cell steps up to ``FLAT_STEP_M``)
+    spans r (1 - 1 / sqrt(1 + (FLAT_STEP_M / res)^2)) and is kept with its taller end cap when that exceeds
+    the jump. Limitations: one object made of a large flat base and a taller part (a tray with a handle) is
+    split too, and so is a narrower lying cylinder with a taller end cap.
 
     Returns the labels and the origin of every label (see :func:`split_touching`)."""
     n = int(labels.max()) + 1
@@ -151,7 +155,9 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
         if sizes[flat] < min_cells:
             continue
         flat_cells = smooth == flat
-        h_flat = float(np.median(h[flat_cells]))
+        h_lo, h_flat, h_hi = np.percentile(h[flat_cells], [5.0, 50.0, 95.0])
+        if h_hi - h_lo > FLAT_JUMP_M:  # not flat: what stands on a support is more than FLAT_JUMP_M above it all
+            continue
         other = comp & seen & ~flat_cells & (h > h_flat + FLAT_JUMP_M)
         if other.sum() < min_cells / 4:
             continue
