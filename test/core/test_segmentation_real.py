@@ -12,7 +12,7 @@ import dataclasses
 import cv2
 import numpy as np
 import pytest
-from tilted_scene import Box, TiltedScene
+from tilted_scene import Box, Cylinder, TiltedScene
 
 from gpis_grasp_ros.core.sensing import (
     SensingParams,
@@ -26,6 +26,7 @@ from gpis_grasp_ros.core.sensing import (
 from gpis_grasp_ros.core.sensing.clear_body import _bounded_extension
 from gpis_grasp_ros.core.sensing.evidence import _colour_model
 from gpis_grasp_ros.core.sensing.objects import _Raster
+from gpis_grasp_ros.core.sensing.params import FLAT_JUMP_M, FLAT_STEP_M
 
 RES = 0.004  # m per raster cell, the scale of the real captures' rasters (2 pixel footprints)
 
@@ -126,6 +127,66 @@ def test_object_standing_next_to_a_flat_support_is_split_from_it():
     # a flat object alone
     _, lab3 = cv2.connectedComponents(notebook.astype(np.uint8), connectivity=8)
     assert np.array_equal(split_flat_support(lab3, np.where(notebook, height, np.nan), RES)[0], lab3)
+
+
+def _crest_span(radius: float, res: float) -> float:
+    """Height span (m) of a lying cylinder's smooth crest: the cells whose neighbours' heights r + sqrt(r^2 - y^2)
+    differ by at most FLAT_STEP_M at cell size ``res``, |y| <= r s / sqrt(1 + s^2) with s = FLAT_STEP_M / res."""
+    return radius * (1.0 - 1.0 / np.sqrt(1.0 + (FLAT_STEP_M / res) ** 2))
+
+
+def _lying_radius(res: float) -> float:
+    """A lying cylinder's radius (m) whose smooth crest spans 1.25 FLAT_JUMP_M at cell size ``res``."""
+    return 1.25 * FLAT_JUMP_M / _crest_span(1.0, res)
+
+
+def test_lying_cylinder_with_a_taller_end_cap_is_no_flat_support():
+    """Top-down cell heights of a lying cylinder (radius 1.25 x the radius whose smooth crest spans FLAT_JUMP_M,
+    25 cm long) and a head 8 mm wider in radius (4 cm long, its crest 16 mm higher), 1 mm noise: the body's smooth
+    crest covers more than FLAT_MIN_AREA_M2 but is not flat, so the cylinder stays one object. A box standing on
+    a flat slab (its top 5 cm above the slab's 12 mm) is still split from it."""
+    rng = np.random.default_rng(0)
+    r = _lying_radius(RES)
+    r_head = r + 0.008
+    ny, nx = int(np.ceil(2 * r_head / RES)) + 4, 80
+    yy, xx = np.mgrid[:ny, :nx]
+    y = (yy + 0.5) * RES - ny * RES / 2
+    body = (xx >= 5) & (xx < 67) & (np.abs(y) < r)
+    head = (xx >= 67) & (xx < 77) & (np.abs(y) < r_head)
+    height = np.full((ny, nx), np.nan)
+    height[body] = r + np.sqrt(r ** 2 - y[body] ** 2)
+    height[head] = r_head + np.sqrt(r_head ** 2 - y[head] ** 2)
+    height += 0.001 * rng.standard_normal(height.shape)
+    _, labels = cv2.connectedComponents((body | head).astype(np.uint8), connectivity=8)
+    assert _crest_span(r, RES) > FLAT_JUMP_M and 2 * (r_head - r) > FLAT_JUMP_M
+    assert np.array_equal(split_flat_support(labels, height, RES)[0], labels)
+
+    slab = np.zeros((60, 60), bool)
+    slab[5:55, 5:55] = True  # 20 x 20 cm
+    box = np.zeros_like(slab)
+    box[22:38, 25:37] = True  # 6.4 x 4.8 cm, standing on the slab
+    h2 = np.where(slab, 0.012, np.nan) + 0.001 * rng.standard_normal(slab.shape)
+    h2[box] = 0.062 + 0.001 * rng.standard_normal(box.sum())
+    _, lab2 = cv2.connectedComponents(slab.astype(np.uint8), connectivity=8)
+    out, _ = split_flat_support(lab2, h2, RES)
+    owner_box = np.bincount(out[box]).argmax()
+    assert len(np.unique(out[slab])) == 2 and np.mean(out[box] == owner_box) > 0.9
+    assert np.mean(out[slab & ~box] != owner_box) > 0.97
+
+
+@pytest.mark.parametrize('tilt', [0.0, 30.0, 45.0, 60.0])
+def test_lying_cylinder_with_a_taller_end_cap_stays_one_object(tilt):
+    """Rendered at tilts 0-60 degrees (10 Carmine frames at 0.8 m): a lying cylinder whose smooth crest spans
+    1.25 FLAT_JUMP_M at the raster's cells (two pixel footprints) and a head 8 mm wider in radius is one object."""
+    res = 2.0 * 0.8 / 570.0 / np.cos(np.radians(tilt))
+    r = _lying_radius(res)
+    body = Cylinder(-0.10, 0.06, 0.0, r)
+    head = Cylinder(0.06, 0.10, 0.0, r + 0.008, rgb=(90.0, 90.0, 90.0))
+    scene = TiltedScene(tilt, cylinders=[body, head])
+    rgb, depth, label = scene.frames(10, seed=int(tilt))
+    result = segment_frames(rgb, depth, scene.intrinsics, SensingParams(max_opening_m=0.0))
+    assert result.objects_seen == 1
+    assert result.object_mask[label > 0].mean() > 0.95 and result.object_mask[label == 2].mean() > 0.95
 
 
 def _raster_pixels(mask: np.ndarray) -> tuple[_Raster, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Analytic RGB-D renderer for tests: boxes on a table plane seen by a tilted pinhole camera.
+"""Analytic RGB-D renderer for tests: boxes and lying cylinders on a table plane seen by a tilted pinhole camera.
 
 Independent of the package's simulator: every pixel's ray is intersected exactly with the table
 plane and with each box (slab method) in the *true* table frame built here. The camera is
@@ -40,14 +40,29 @@ class Box:
 
 
 @dataclass
+class Cylinder:
+    """Cylinder lying on the table, its axis along the true table frame's x from ``x0`` to ``x1`` at ``y``, at
+    height ``radius`` (m)."""
+
+    x0: float
+    x1: float
+    y: float
+    radius: float
+    rgb: tuple[float, float, float] = (60.0, 60.0, 60.0)
+
+
+@dataclass
 class TiltedScene:
     tilt_deg: float
     distance_m: float = 0.8  # along the optical axis to the table
     boxes: list[Box] = field(default_factory=list)
+    cylinders: list[Cylinder] = field(default_factory=list)  # labelled after the boxes
     width: int = 640
     height: int = 480
     focal_px: float = 570.0  # VGA, like the Carmine
     shadows: list[tuple[float, float, float, float, float]] = field(default_factory=list)  # (x0, y0, x1, y1, gain)
+    prints: list[tuple[float, float, float, float, tuple[float, float, float]]] = field(default_factory=list)
+    #       flat marks on the table: (x0, y0, x1, y1, rgb)
 
     @property
     def normal(self) -> np.ndarray:
@@ -113,6 +128,11 @@ class TiltedScene:
             hit = (t_near <= t_far) & (t_near > 0) & (t_near < t_best)
             t_best = np.where(hit, t_near, t_best)
             label = np.where(hit, k, label)
+        for k, cyl in enumerate(self.cylinders, start=len(self.boxes) + 1):
+            t_hit = self._cylinder_hit(local, cyl)
+            hit = t_hit < t_best
+            t_best = np.where(hit, t_hit, t_best)
+            label = np.where(hit, k, label)
         depth = np.where(np.isfinite(t_best), t_best, np.nan)  # rays have z = 1: t is the depth
         rgb = np.broadcast_to(TABLE_RGB, u.shape + (3,)).copy()
         table_xy = self.table_xy(rays * depth[..., None])
@@ -120,9 +140,29 @@ class TiltedScene:
             sh = (label == 0) & (table_xy[..., 0] >= x0) & (table_xy[..., 0] <= x1) & (table_xy[..., 1] >= y0) \
                 & (table_xy[..., 1] <= y1)
             rgb[sh] *= gain
-        for k, b in enumerate(self.boxes, start=1):
+        for x0, y0, x1, y1, colour in self.prints:
+            mark = (label == 0) & (table_xy[..., 0] >= x0) & (table_xy[..., 0] <= x1) & (table_xy[..., 1] >= y0) \
+                & (table_xy[..., 1] <= y1)
+            rgb[mark] = colour
+        for k, b in enumerate(self.boxes + self.cylinders, start=1):
             rgb[label == k] = b.rgb
         return depth, rgb, label
+
+    def _cylinder_hit(self, local: np.ndarray, cyl: Cylinder) -> np.ndarray:
+        """Ray parameter (= depth) of the first hit of rays ``local`` (table frame) on ``cyl``'s side or end caps."""
+        ox, oy = self.origin_xy
+        yc, zc = oy + cyl.y, self.offset - cyl.radius  # the axis, in the table frame (the camera at its origin)
+        lx, ly, lz = local[..., 0], local[..., 1], local[..., 2]
+        a, b, c = ly ** 2 + lz ** 2, ly * yc + lz * zc, yc ** 2 + zc ** 2 - cyl.radius ** 2
+        with np.errstate(divide='ignore', invalid='ignore'):
+            t_side = (b - np.sqrt(b ** 2 - a * c)) / a
+            x = t_side * lx
+            t = np.where(np.isfinite(t_side) & (t_side > 0) & (x >= ox + cyl.x0) & (x <= ox + cyl.x1), t_side, np.inf)
+            for x_cap in (ox + cyl.x0, ox + cyl.x1):
+                t_cap = x_cap / lx
+                inside = (t_cap * ly - yc) ** 2 + (t_cap * lz - zc) ** 2 <= cyl.radius ** 2
+                t = np.where(np.isfinite(t_cap) & (t_cap > 0) & inside & (t_cap < t), t_cap, t)
+        return t
 
     def frames(self, n: int = 10, seed: int = 0, model: SensorModel | None = None,
                rgb_noise: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,5 +1,6 @@
 """Objects on the table: evidence components in the table plane, split where objects touch, joined across small
-holes; the target picked among them and refused when it is cut by the border or too wide for the gripper."""
+holes, kept when they hold enough solid evidence; the target picked among them and refused when it is cut by the
+border or too wide for the gripper."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import cv2
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.special import ndtri
 
 from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
 from gpis_grasp_ros.core.sensing.evidence import Evidence
@@ -22,6 +24,7 @@ from gpis_grasp_ros.core.sensing.params import (
     MISSING_ATTACH_M,
     MISSING_BRIDGE_M,
     OBJECT_HEIGHT_PERCENTILE,
+    SOLID_FALSE_ALARM,
     SPLIT_NECK_M,
     SensingParams,
 )
@@ -108,8 +111,12 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
     *above* it (something taller standing on or next to it), the component is split:
     the flat region is one object, the rest is assigned to the flat region or to the other parts by a
     watershed of -DT (cells go to the part they are deepest in), each other part keeping its own label.
-    A box's flat top is not a support: the feet of its walls lie *below* it. Limitation: one object
-    made of a large flat base and a taller part (a tray with a handle) is split too.
+    A box's flat top is not a support: the feet of its walls lie *below* it. Nor is a smooth region whose
+    heights (5th to 95th percentile) span more than ``FLAT_JUMP_M``: a support is flat to within the jump
+    that tells what stands on it, while a lying cylinder's smooth crest (cell steps up to ``FLAT_STEP_M``)
+    spans r (1 - 1 / sqrt(1 + (FLAT_STEP_M / res)^2)) and is kept with its taller end cap when that exceeds
+    the jump. Limitations: one object made of a large flat base and a taller part (a tray with a handle) is
+    split too, and so is a narrower lying cylinder with a taller end cap.
 
     Returns the labels and the origin of every label (see :func:`split_touching`)."""
     n = int(labels.max()) + 1
@@ -148,7 +155,9 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
         if sizes[flat] < min_cells:
             continue
         flat_cells = smooth == flat
-        h_flat = float(np.median(h[flat_cells]))
+        h_lo, h_flat, h_hi = np.percentile(h[flat_cells], [5.0, 50.0, 95.0])
+        if h_hi - h_lo > FLAT_JUMP_M:  # not flat: what stands on a support is more than FLAT_JUMP_M above it all
+            continue
         other = comp & seen & ~flat_cells & (h > h_flat + FLAT_JUMP_M)
         if other.sum() < min_cells / 4:
             continue
@@ -264,18 +273,55 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
     return raster, px_labels
 
 
-def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
-                   intr: CameraIntrinsics) -> tuple[int, int]:
-    """Label of the target component and the number of objects seen (``target`` mode)."""
+#: Sigmas of the table's height noise above which a depth-seen pixel is solid (one-sided, SOLID_FALSE_ALARM).
+SOLID_SIGMAS = float(-ndtri(SOLID_FALSE_ALARM))
+
+
+def solid_pixels(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray, h_thr: float,
+                 missing: np.ndarray) -> np.ndarray:
+    """Pixels that are surely not the table: depth-seen more than ``SOLID_SIGMAS`` sigma above it, or ``missing``.
+
+    sigma is each pixel's height noise ``s_h`` (m, the sensor model at its depth and incidence) scaled by the
+    table inliers' measured RMS height over their modelled one (a filtered depth image is less noisy than the
+    model, a rough table or a misfitted plane more); at least the depth-evidence threshold ``h_thr``."""
+    res_h = height[inlier]
+    model = s_h[inlier]
+    ratio = math.sqrt(float(np.mean(res_h ** 2)) / max(float(np.mean(model ** 2)), 1e-18)) if res_h.size else 1.0
+    thr = np.maximum(h_thr, SOLID_SIGMAS * ratio * s_h)
+    return (np.nan_to_num(height, nan=-np.inf) > thr) | missing
+
+
+def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, solid: np.ndarray,
+                  params: SensingParams) -> np.ndarray:
+    """Labels of the components that are objects, not sensor noise or marks on the table.
+
+    An object covers at least ``min_object_area_px`` pixels and ``min_object_area_m2`` of the table, and as much
+    table area of ``solid`` evidence (:func:`solid_pixels`; area = the raster cells holding its solid pixels'
+    feet). The default 1 cm^2 is a jaw face (``GripperParams.jaw_width`` 1 cm) squared: less can neither be
+    held nor stop a closing jaw. Depth noise just above the evidence threshold and flat prints seen only in
+    colour are neither targets nor other objects."""
     n_lab = int(raster.labels.max()) + 1
     px_count = np.bincount(px_labels.ravel(), minlength=n_lab)
     area_m2 = np.bincount(raster.labels.ravel(), minlength=n_lab) * raster.res ** 2
-    kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2))[0]
-    kept = kept[kept > 0]
+    ix, iy, ok = raster.cell(foot_xy)
+    sel = solid & (px_labels > 0) & ok
+    cells = np.unique(np.stack([px_labels[sel], iy[sel] * raster.labels.shape[1] + ix[sel]], axis=1), axis=0)
+    solid_m2 = np.bincount(cells[:, 0], minlength=n_lab) * raster.res ** 2
+    kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2)
+                      & (solid_m2 >= params.min_object_area_m2))[0]
+    return kept[kept > 0]
+
+
+def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
+                   intr: CameraIntrinsics, kept: np.ndarray) -> tuple[int, int]:
+    """Label of the target among the objects ``kept`` and the number of objects seen (``target`` mode)."""
+    n_lab = int(raster.labels.max()) + 1
+    area_m2 = np.bincount(raster.labels.ravel(), minlength=n_lab) * raster.res ** 2
     if kept.size == 0:
         raise ValueError(f'no object found on the table: no region of at least {params.min_object_area_px} px and '
                          f'{params.min_object_area_m2 * 1e4:.1f} cm^2 stands out from the table in depth or colour '
-                         'or lacks depth (empty table?)')
+                         'or lacks depth, with as much of it surely above the table\'s depth noise or without depth '
+                         '(empty table?)')
     if params.target == 'largest':
         return int(kept[np.argmax(area_m2[kept])]), int(kept.size)
     if params.target == 'nearest_center':
@@ -373,6 +419,7 @@ class Objects(NamedTuple):
     target: int  # the target's label
     objects_seen: int  # components kept (not specks)
     target_px: np.ndarray  # (H, W) bool, the target's evidence pixels
+    kept: np.ndarray  # labels of the objects (components that are not noise, :func:`object_labels`)
 
 
 def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarray,
@@ -403,7 +450,10 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
     inlier_xy = foot_xy[rim]
     raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
                                           np.where(ev.p_d > 0.5, height, np.nan))
-    target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics)
+    on_plane = inlier & (np.abs(np.nan_to_num(height, nan=np.inf)) <= fit.band)  # not moved by the see-through test
+    solid = solid_pixels(height, meas.s_h, on_plane, fit.h_thr, missing_px & evidence)
+    kept = object_labels(px_labels, raster, foot_xy, solid, params)
+    target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics, kept)
     target_px = px_labels == target
     _check_target(target_px, foot_xy[target_px], raster.labels == target, raster.res, params, intrinsics)
-    return Objects(raster, px_labels, target, objects_seen, target_px)
+    return Objects(raster, px_labels, target, objects_seen, target_px, kept)

@@ -22,6 +22,7 @@ OBJECT_HEIGHT_PERCENTILE = 95.0  # measured object height: this percentile of it
 FLAT_STEP_M = 0.004  # neighbouring cells of a flat surface differ by at most this height (m)
 FLAT_JUMP_M = 0.01  # ... and something standing on/next to it differs from it by more (m)
 FLAT_MIN_AREA_M2 = 0.002  # a flat support (notebook, plate, tray) covers at least this area (m^2)
+SOLID_FALSE_ALARM = 1e-3  # one-sided probability per pixel of table noise being taken as solid evidence
 SPLIT_NECK_M = 0.01  # touching objects split where both are wider than their contact by 2 x this (radius, m)
 CHROMA_SMOOTH_PX = 1.5  # Gaussian sigma (px) of the colour image before its chromaticity is taken
 CHROMA_DARK = 20.0  # darker pixels (mean of 0-255 RGB) have no reliable chromaticity

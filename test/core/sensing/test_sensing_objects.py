@@ -13,7 +13,7 @@ from gpis_grasp_ros.core.sensing import (
     object_height,
     split_touching,
 )
-from gpis_grasp_ros.core.sensing.objects import _Raster, _select_target
+from gpis_grasp_ros.core.sensing.objects import _Raster, _select_target, object_labels
 
 
 def test_two_touching_boxes_are_split_at_their_contact():
@@ -40,7 +40,7 @@ def test_an_object_with_a_narrow_part_stays_whole():
 
 def _scene_labels() -> tuple[np.ndarray, _Raster, np.ndarray, CameraIntrinsics]:
     """Three components in the table raster (5 mm cells): 10 x 10 cells, 5 x 5 cells and one cell (a speck of
-    0.25 cm^2), with 200, 100 and 50 pixels."""
+    0.25 cm^2), with 200, 100 and 50 pixels, each pixel's foot in a cell of its component."""
     labels = np.zeros((30, 30), np.int32)
     labels[2:12, 2:12] = 1
     labels[20:25, 20:25] = 2
@@ -51,17 +51,39 @@ def _scene_labels() -> tuple[np.ndarray, _Raster, np.ndarray, CameraIntrinsics]:
     px[30:35, 40:60] = 2
     px[20:25, 0:10] = 3
     foot = np.full((40, 60, 2), np.nan)
+    for lab in (1, 2, 3):
+        iy, ix = np.nonzero(labels == lab)
+        centres = (np.stack([ix, iy], axis=1) + 0.5) * raster.res
+        foot[px == lab] = centres[np.arange((px == lab).sum()) % centres.shape[0]]
     return px, raster, foot, CameraIntrinsics(50.0, 50.0, 29.5, 19.5, 60, 40)
+
+
+def _select(px, raster, foot, params, intr, solid=None):
+    solid = px > 0 if solid is None else solid
+    return _select_target(px, raster, foot, params, intr, object_labels(px, raster, foot, solid, params))
 
 
 def test_specks_are_not_objects():
     px, raster, foot, intr = _scene_labels()
-    target, seen = _select_target(px, raster, foot, SensingParams(), intr)
+    target, seen = _select(px, raster, foot, SensingParams(), intr)
     assert (target, seen) == (1, 2)
-    target, seen = _select_target(px, raster, foot, SensingParams(min_object_area_m2=1e-5), intr)
+    target, seen = _select(px, raster, foot, SensingParams(min_object_area_m2=1e-5), intr)
     assert seen == 3
     with pytest.raises(ValueError, match='no object found'):
-        _select_target(px, raster, foot, SensingParams(min_object_area_px=1000), intr)
+        _select(px, raster, foot, SensingParams(min_object_area_px=1000), intr)
+
+
+def test_an_object_needs_a_minimum_area_of_solid_evidence():
+    """Component 2 (5 x 5 cells, 6.25 cm^2) with solid evidence in 3 cells (0.75 cm^2) is no object; in 4 cells
+    (1 cm^2, the minimum) it is. Component 1 without any solid pixel is none either."""
+    px, raster, foot, intr = _scene_labels()
+    ix, iy, _ = raster.cell(foot)
+    cell = iy * 30 + ix
+    for n_cells, objects in ((3, []), (4, [2])):
+        solid = (px == 2) & np.isin(cell, np.unique(cell[px == 2])[:n_cells])
+        assert list(object_labels(px, raster, foot, solid, SensingParams())) == objects
+    with pytest.raises(ValueError, match='no object found'):
+        _select(px, raster, foot, SensingParams(), intr, np.zeros(px.shape, bool))
 
 
 def test_target_nearest_the_image_centre():
@@ -69,7 +91,12 @@ def test_target_nearest_the_image_centre():
     px[:] = 0
     px[0:5, 0:40] = 1  # centroid (19.5, 2)
     px[15:25, 25:35] = 2  # centroid (29.5, 19.5): the image centre
-    assert _select_target(px, raster, foot, SensingParams(target='nearest_center'), intr)[0] == 2
+    foot[:] = np.nan
+    for lab in (1, 2):
+        iy, ix = np.nonzero(raster.labels == lab)
+        centres = (np.stack([ix, iy], axis=1) + 0.5) * raster.res
+        foot[px == lab] = centres[np.arange((px == lab).sum()) % centres.shape[0]]
+    assert _select(px, raster, foot, SensingParams(target='nearest_center'), intr)[0] == 2
 
 
 def test_minimum_width_object_height_and_nearest_pixel():
