@@ -368,9 +368,9 @@ def test_license_and_citation():
 
 # ------------------------------------------------------------------------------------------ the README's commands
 def _readme_launch_commands() -> list[tuple[str, dict[str, str]]]:
-    """(launch file, {argument: value}) of every ``ros2 launch gpis_grasp_ros ...`` in the README, shell variables
+    """(launch file, {argument: value}) of every ``ros2 launch gpis_grasp_ros ...`` in the READMEs, shell variables
     of the README ($U, $V: a pixel; $PWD) given example values."""
-    text = (ROOT / 'README.md').read_text().replace('\\\n', ' ')
+    text = '\n'.join((ROOT / p).read_text() for p in ('README.md', 'bags/real/README.md')).replace('\\\n', ' ')
     text = text.replace('$U', '412.0').replace('$V', '230.0').replace('$PWD', '/tmp')
     out = []
     for line in text.splitlines():
