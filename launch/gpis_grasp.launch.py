@@ -5,6 +5,8 @@
     ros2 launch gpis_grasp_ros gpis_grasp.launch.py input_mode:=images sensor_model:=realsense_d400 \\
         target:=pixel target_point:='[320.0, 240.0]' rgb_topic:=/my/rgb depth_topic:=/my/depth \\
         camera_info_topic:=/my/camera_info
+    ros2 launch gpis_grasp_ros gpis_grasp.launch.py bag:=capture.mcap frames_to_average:=1 \\
+        sensor_model:=realsense_d400 target:=pixel target_point:='[160.0, 120.0]'   # a one-frame imported capture
 
 Every node reads ``params_file`` (default: the installed config/default.yaml, keys ``/**/<node>`` so it
 applies in any namespace); the arguments below override single parameters. ``bag:=FILE`` replays one bag
@@ -46,6 +48,8 @@ def generate_launch_description():
                                           '(registered rgb + depth images + camera_info)'),
         DeclareLaunchArgument('sensor_model', default_value='carmine',
                               description="depth-noise model: 'carmine', 'realsense_d400' or 'custom'"),
+        DeclareLaunchArgument('frames_to_average', default_value='10',
+                              description='camera frames averaged per estimate (1 for a one-frame bag)'),
         DeclareLaunchArgument('target', default_value='largest',
                               description="object to model: 'largest', 'nearest_center', 'pixel' or 'table'"),
         DeclareLaunchArgument('target_point', default_value='[0.0, 0.0]',
@@ -78,6 +82,7 @@ def generate_launch_description():
         package=PACKAGE, executable='segmentation_node', namespace=namespace, output='screen',
         parameters=[*common, {'input_mode': LaunchConfiguration('input_mode'),
                               'sensor_model': LaunchConfiguration('sensor_model'),
+                              'frames_to_average': LaunchConfiguration('frames_to_average'),
                               'target': LaunchConfiguration('target'),
                               'target_point': LaunchConfiguration('target_point')}],
         remappings=[('camera/depth/points', LaunchConfiguration('cloud_topic')),

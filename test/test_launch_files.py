@@ -11,6 +11,7 @@ from __future__ import annotations
 import ast
 import re
 import runpy
+import shlex
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -246,7 +247,8 @@ def _segmentation_overrides(lf: LaunchFile, values: dict[str, Any]) -> list[Para
 def test_pipeline_defaults_are_accepted_by_segmentation_node():
     lf = LaunchFile(PIPELINE)
     overrides = _segmentation_overrides(lf, lf.arguments())
-    assert {p.name for p in overrides} == {'input_mode', 'sensor_model', 'target', 'target_point'}
+    assert {p.name for p in overrides} == {'input_mode', 'sensor_model', 'frames_to_average', 'target',
+                                           'target_point'}
     iface = _interface(_node_classes()['segmentation_node'], overrides)
     assert '/camera/depth/points' in _topics(iface, 'subscribes')
 
@@ -362,3 +364,40 @@ def test_license_and_citation():
     assert [a['family-names'] for a in paper['authors']] == ['Mahler', 'Patil', 'Kehoe', 'van den Berg',
                                                              'Ciocarlie', 'Abbeel', 'Goldberg']
     assert paper['year'] == 2015
+
+
+# ------------------------------------------------------------------------------------------ the README's commands
+def _readme_launch_commands() -> list[tuple[str, dict[str, str]]]:
+    """(launch file, {argument: value}) of every ``ros2 launch gpis_grasp_ros ...`` in the READMEs, shell variables
+    of the README ($U, $V: a pixel; $PWD) given example values."""
+    text = '\n'.join((ROOT / p).read_text() for p in ('README.md', 'bags/real/README.md')).replace('\\\n', ' ')
+    text = text.replace('$U', '412.0').replace('$V', '230.0').replace('$PWD', '/tmp')
+    out = []
+    for line in text.splitlines():
+        line = line.strip().strip('`')
+        if not line.startswith(f'ros2 launch {PACKAGE} '):
+            continue
+        words = shlex.split(line.split(' #')[0])
+        out.append((words[3], dict(w.split(':=', 1) for w in words[4:])))
+    return out
+
+
+def test_readme_launch_commands_name_declared_arguments_nodes_accept():
+    commands = _readme_launch_commands()
+    assert {name for name, _ in commands} == {'gpis_grasp.launch.py', 'realsense.launch.py'}
+    assert any('frames_to_average' in args for _, args in commands)  # the one-frame replay
+    pipe = LaunchFile(PIPELINE)
+    for name, args in commands:
+        lf = LaunchFile(LAUNCH / name)
+        declared = lf.arguments()
+        assert set(args) <= set(declared), (name, set(args) - set(declared))
+        if lf.path == PIPELINE:
+            values = {**declared, **args}
+        else:  # realsense.launch.py: its values, passed on to the pipeline
+            rs_values = {**declared, **args}
+            include = lf.keyword(lf.calls_of('IncludeLaunchDescription')[0], 'launch_arguments').func.value
+            given = {lf.literal(k): v for k, v in zip(include.keys, include.values, strict=True)}
+            values = {**pipe.arguments(), **{k: (lf.literal(v) if lf.config_name(v) is None
+                                                 else rs_values[lf.config_name(v)]) for k, v in given.items()}}
+        overrides = _segmentation_overrides(pipe, {k: v for k, v in values.items() if v is not None})
+        _interface(_node_classes()['segmentation_node'], overrides)  # raises on a value the node refuses

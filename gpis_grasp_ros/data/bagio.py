@@ -9,6 +9,9 @@
   temporary path next to the destination and renamed on success: an error never leaves a
   partial bag behind.
 * :func:`iter_bag` / :func:`read_messages` — messages in time order with their recorded QoS.
+* :func:`bag_custom_data` — the ``custom_data`` a writer stored in the rosbag2 metadata (what the
+  simulator and the RGB-D importer recorded about a bag), read from ``metadata.yaml`` or from the
+  MCAP file's embedded ``rosbag2`` metadata record (``rosbags``' MCAP reader does not expose it).
 
 QoS presets follow the usual ROS 2 conventions: :data:`LATCHED_QOS` (RELIABLE,
 TRANSIENT_LOCAL, KEEP_LAST 1) for ground truth published once, :data:`SENSOR_QOS`
@@ -19,12 +22,14 @@ from __future__ import annotations
 
 import os
 import shutil
+import struct
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
@@ -247,3 +252,54 @@ def read_messages(path: str | os.PathLike[str],
     """Deserialized messages ``(topic, msgtype, t_ns, msg)`` in time order (rosbags dataclasses)."""
     for conn, t_ns, raw, reader in _iter_raw(path, topics):
         yield conn.topic, conn.msgtype, t_ns, reader.deserialize(raw, conn.msgtype)
+
+
+# --------------------------------------------------------------------------- metadata
+_MCAP_MAGIC = b'\x89MCAP0\r\n'
+_MCAP_FOOTER, _MCAP_METADATA = 0x02, 0x0C
+
+
+def _mcap_string(buf: bytes, pos: int) -> tuple[str, int]:
+    (n,) = struct.unpack_from('<I', buf, pos)
+    return buf[pos + 4:pos + 4 + n].decode('utf8'), pos + 4 + n
+
+
+def _mcap_metadata(path: Path) -> dict[str, dict[str, str]]:
+    """Name → key/value map of the top-level Metadata records of an MCAP file (chunks are skipped)."""
+    out: dict[str, dict[str, str]] = {}
+    with open(path, 'rb') as f:
+        if f.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+            raise ValueError(f'{path}: not an MCAP file')
+        while True:
+            head = f.read(9)
+            if len(head) < 9:
+                break
+            opcode, (length,) = head[0], struct.unpack('<Q', head[1:])
+            if opcode == _MCAP_FOOTER:
+                break
+            if opcode != _MCAP_METADATA:
+                f.seek(length, os.SEEK_CUR)
+                continue
+            body = f.read(length)
+            name, pos = _mcap_string(body, 0)
+            (size,) = struct.unpack_from('<I', body, pos)
+            pos, end, entries = pos + 4, pos + 4 + size, {}
+            while pos < end:
+                key, pos = _mcap_string(body, pos)
+                entries[key], pos = _mcap_string(body, pos)
+            out[name] = entries
+    return out
+
+
+def bag_custom_data(path: str | os.PathLike[str]) -> dict[str, str]:
+    """The ``custom_data`` (str → str) of a bag's rosbag2 metadata; empty when it has none."""
+    path = Path(path)
+    _check_bag_path(path)
+    if path.is_dir():
+        text = (path / 'metadata.yaml').read_text(encoding='utf8')
+    else:
+        text = _mcap_metadata(path).get('rosbag2', {}).get('serialized_metadata', '')
+    info = yaml.safe_load(text) if text else {}
+    # metadata.yaml nests it under rosbag2_bagfile_information; the MCAP record holds that mapping itself
+    info = (info or {}).get('rosbag2_bagfile_information', info or {})
+    return {str(k): str(v) for k, v in (info.get('custom_data') or {}).items()}

@@ -43,10 +43,6 @@ _RESULT_FIELDS = ('success', 'message', 'method', 'jaw1', 'jaw2', 'grasp_pose', 
                   'jaw_separation', 'grasp_height', 'probability_force_closure',
                   'probability_force_closure_std_error', 'ferrari_canny_on_mean', 'objective', 'planning_time',
                   'iterations')
-#: planner_node's answer before it has a model; :meth:`GraspPlannerClient.plan` asks again for up to
-#: MODEL_GRACE s when the client has already seen a model on ``gpis/model`` (the planner is still taking it).
-NO_MODEL = 'no GPIS received yet'
-MODEL_GRACE = 10.0
 _STATUS = {GoalStatus.STATUS_SUCCEEDED: 'succeeded', GoalStatus.STATUS_ABORTED: 'aborted',
            GoalStatus.STATUS_CANCELED: 'canceled'}
 
@@ -229,23 +225,15 @@ class GraspPlannerClient(Node):
         """Plan a grasp on the latest GPIS (request fields as in GraspPlan.srv: empty method / 0 / negative =
         the node's parameter; seed 0 = nondeterministic). ``timeout`` s (None = wait for the answer): past it
         the action goal is cancelled and the result has status 'timeout'. ``feedback_callback`` receives each
-        PlanGrasp.Feedback (action only)."""
+        PlanGrasp.Feedback (action only).
+
+        A request sent right after a model was published is planned on it: planner_node waits up to its
+        ``model_wait`` s for a model it is still taking before it answers 'no GPIS received yet'."""
         fields = dict(method=str(method), seed=int(seed), num_initial_grasps=int(num_initial_grasps),
                       uncertainty_penalty=float(uncertainty_penalty))
-        end = None if timeout is None else time.monotonic() + timeout
-        grace = time.monotonic() + MODEL_GRACE
-        while True:
-            left = None if end is None else max(0.0, end - time.monotonic())
-            if use_action:
-                result = self._plan_by_action(PlanGrasp.Goal(**fields), left, feedback_callback)
-            else:
-                result = self._plan_by_service(GraspPlan.Request(**fields), left)
-            # The model was published but planner_node is still taking it (it renders its GPIS-Blur first):
-            # ask again for a moment instead of reporting a model the caller already waited for as missing.
-            if (result.success or NO_MODEL not in result.message or not self._model_received.is_set()
-                    or time.monotonic() > grace or (end is not None and time.monotonic() > end)):
-                return result
-            time.sleep(0.1)
+        if use_action:
+            return self._plan_by_action(PlanGrasp.Goal(**fields), timeout, feedback_callback)
+        return self._plan_by_service(GraspPlan.Request(**fields), timeout)
 
     def _plan_by_service(self, request: GraspPlan.Request, timeout: float | None) -> PlanResult:
         end = None if timeout is None else time.monotonic() + timeout

@@ -1,6 +1,7 @@
 """GraspPlannerClient against the real nodes (launch-free): a bag replayed into segmentation_node →
 gpis_node → planner_node, gripper_sim_node on the bag's ground truth; plan by action and by service,
-cancel, execute, frames, and a timeout when no model comes."""
+cancel, execute, frames, and a timeout when no model comes. The first plan is sent as soon as the
+client has seen the model (no wait for planner_node to take it)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
 from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
 from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
 from gpis_grasp_ros.ros.player import BagPlayer
-from rosutil import RosHarness, wait_for
+from rosutil import RosHarness
 
 BAG = Path(__file__).resolve().parents[2] / 'bags' / 'A_tape_dispenser.mcap'
 
@@ -38,14 +39,14 @@ def loop():
     player = BagPlayer(ros.node('player'), BAG, rate=0.0, reliable=True, wait_for_subscribers=5.0)
     player.play_once(blocking=True)
     assert client.wait_until_ready(timeout=90.0), 'no GPIS model from the bag'
-    assert wait_for(planner.has_model, 30.0)
     yield client
+    assert planner.has_model()
     client.close()
     player.destroy()
     ros.close()
 
 
-def test_plan_by_action_with_feedback(loop):
+def test_plan_by_action_with_feedback(loop):  # the first plan, right after wait_until_ready
     feedback = []
     result = loop.plan(method='gp-gpis-opt', seed=1, timeout=120.0, feedback_callback=feedback.append)
     assert result.success, result.message
@@ -151,14 +152,16 @@ def test_to_frame_moves_every_point_rigidly(loop):
 
 def test_no_model_times_out():
     ros = RosHarness(threads=2)
-    ros.add(PlannerNode(context=ros.context))
+    ros.add(PlannerNode(context=ros.context, parameter_overrides=[Parameter('model_wait', value=1.0)]))
     client = GraspPlannerClient(context=ros.context)
     try:
         start = time.monotonic()
         assert client.wait_until_ready(timeout=1.5) is False
         assert 1.4 <= time.monotonic() - start < 10.0
+        start = time.monotonic()
         result = client.plan(timeout=30.0)
         assert not result.success and 'no GPIS received yet' in result.message
+        assert 1.0 <= time.monotonic() - start < 20.0  # planner_node's model_wait, then the answer
         outcome = client.execute(result, timeout=1.0)  # no gripper_sim_node here
         assert not outcome.success and 'not available' in outcome.message
     finally:

@@ -15,6 +15,10 @@ and the worker takes the next request at once. The service keeps a request histo
 :data:`~gpis_grasp_ros.ros.nodes.common.SERVICE_QUEUE_DEPTH` so that a burst of calls is not
 dropped by DDS before the node takes it.
 
+**The first model.** A request arriving before any model waits up to ``model_wait`` s for one (a
+model published just before the request may still be being taken) before it is answered
+"no GPIS received yet".
+
 **Bad input.** A GpisModel is checked against the node's limits before anything is allocated
 (:func:`gpis_grasp_ros.ros.validation.check_gpis_model`) and the rebuilt posterior must be finite;
 a rejected model is logged with the offending field and the previous model stays in use.
@@ -88,6 +92,7 @@ class PlannerConfig:
     planner: planners.PlannerParams = field(default_factory=planners.PlannerParams)
     method: str = 'gp-gpis-opt'  # used when a request leaves method empty
     planning_timeout: float = 60.0  # s of planning after which a request is stopped
+    model_wait: float = 5.0  # s a request arriving before any model waits for one
     image_scale: int = 16  # pixels per grid cell of grasp/image
     max_queue: int = 32  # requests that may wait for a worker
     workers: int = 1  # planning threads
@@ -122,6 +127,8 @@ PARAMETERS = ParamTable('planner_node', [
     GRIPPER['jaw_height'].replace(target=PlannerConfig),
     Param('planning_timeout', float, 'planning time after which a request is stopped and answered success=false '
           '(queueing time not included)', PlannerConfig, unit='s', low=0.1, high=3600.0),
+    Param('model_wait', float, "a request arriving before the first GPIS model waits this long for one before "
+          "it is answered 'no GPIS received yet'", PlannerConfig, unit='s', low=0.0, high=60.0),
     Param('image_scale', int, 'pixels per grid cell of grasp/image', PlannerConfig, low=1, high=64),
     Param('grasp_height', float, 'height above the table, along its normal, of the jaw poses and contacts; '
           'negative = automatic: half of object_height, at least half of jaw_height', PlannerConfig, unit='m',
@@ -188,6 +195,7 @@ class PlannerNode(GuardedNode):
         self.workers = self.config.workers
 
         self._lock = threading.Lock()
+        self._model_ready = threading.Condition(self._lock)  # notified when a model is taken
         self._model: GpisModel | None = None
         self._posterior = None
         self._blur: np.ndarray | None = None
@@ -229,8 +237,9 @@ class PlannerNode(GuardedNode):
                                       'keeping the previous model')
             return
         blur = gpis_blur(posterior, n_samples=200, rng=np.random.default_rng(0))
-        with self._lock:
+        with self._model_ready:
             self._model, self._posterior, self._blur = msg, posterior, blur
+            self._model_ready.notify_all()
         g = posterior.geometry
         self.get_logger().info(f'GPIS received: {g.height}x{g.width} cells of {g.resolution * 1000:.1f} mm '
                                f"in '{g.frame_id}'")
@@ -239,6 +248,18 @@ class PlannerNode(GuardedNode):
         """Whether a GPIS model has been received and is ready for planning."""
         with self._lock:
             return self._posterior is not None
+
+    def _latest_model(self, wait: float) -> tuple[Any, Any, Any]:
+        """(model, posterior, blur) of the latest GPIS; before the first, wait up to ``wait`` s for one
+        (or until shutdown): a model published just before the request may still be being taken."""
+        deadline = time.monotonic() + wait
+        with self._model_ready:
+            while self._posterior is None and not self.shutting_down.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._model_ready.wait(min(left, 0.05))
+            return self._model, self._posterior, self._blur
 
     # ------------------------------------------------------------------ requests
     def _make_job(self, method_field: str, n_field: int, lam_field: float, seed_field: int) -> PlanJob | str:
@@ -261,11 +282,10 @@ class PlannerNode(GuardedNode):
         elif lam > LAMBDA_RANGE[1]:
             return (f'uncertainty_penalty={lam} is outside the parameter range [{LAMBDA_RANGE[0]:g}, '
                     f'{LAMBDA_RANGE[1]:g}] (negative = use the node parameter)')
-        with self._lock:
-            model, posterior, blur = self._model, self._posterior, self._blur
+        model, posterior, blur = self._latest_model(config.model_wait)
         if posterior is None:
             return ('no GPIS received yet: waiting for a gpis_grasp_interfaces/msg/GpisModel on '
-                    f"'{self.resolve_topic_name(self._model_topic)}'")
+                    f"'{self.resolve_topic_name(self._model_topic)}' (waited model_wait={config.model_wait:g} s)")
         seed = int(seed_field) if seed_field else int(np.random.SeedSequence().entropy % (2 ** 32))
         return PlanJob(method=method, n=n, lam=lam, seed=seed, posterior=posterior, model=model, blur=blur,
                        config=config)
