@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from bag_posteriors import BAGS, bag_posteriors
 
 from gpis_grasp_ros.core.contacts import find_contacts
 from gpis_grasp_ros.core.planners import PlannerParams, PlanningContext, plan
+from support.bag_posteriors import BAGS, bag_posteriors
 
 PARAMS = PlannerParams(n_shape_samples=100)
 SEEDS = (0, 1, 2)

@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
 from gpis_grasp_ros.core.sensing import SensingParams, clear_body_height, minimum_width, prism_footprint, segment_frames
 from gpis_grasp_ros.core.table_frame import TableFrame
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.tools.evaluation.truth import TrueShape
+from support.tilted_scene import Box, TiltedScene
 
 BAGS = Path(__file__).resolve().parents[2] / 'bags'
 

@@ -14,10 +14,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from bag_posteriors import bag_posteriors
 
 from gpis_grasp_ros.core.planners import PlannerParams, PlanningContext, plan
 from gpis_grasp_ros.core.quality import draw_shape_samples, probability_force_closure
+from support.bag_posteriors import bag_posteriors
 
 PARAMS = PlannerParams(n_shape_samples=100, n_grasp_samples=300)
 N_SAMPLES = 1000

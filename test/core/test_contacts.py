@@ -11,7 +11,7 @@ from gpis_grasp_ros.core.contacts import find_contacts, perturb_grasps
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.sdf_bank import SdfBank, bilinear
-from synthetic_shapes import disc_sdf, make_geometry, rectangle_sdf, union
+from support.synthetic_shapes import disc_sdf, make_geometry, rectangle_sdf, union
 
 G = make_geometry()  # 25 x 25, 5 mm cells, corner at the origin
 CENTRE = np.array([0.0625, 0.0625])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gpis_grasp_ros.core.planners import PlanControl, PlannerParams, PlanProgress, plan
-from synthetic_shapes import transparent_part_posterior
+from support.synthetic_shapes import transparent_part_posterior
 
 POST, _ = transparent_part_posterior()
 PARAMS = PlannerParams(n_shape_samples=300, n_grasp_samples=300, n_initial_grasps=6)

@@ -18,7 +18,7 @@ from gpis_grasp_ros.core.planners import (
     sample_valid_grasps,
 )
 from gpis_grasp_ros.core.sdf_bank import SdfBank, bilinear
-from synthetic_shapes import (
+from support.synthetic_shapes import (
     certain_rectangle_posterior,
     make_geometry,
     make_posterior,

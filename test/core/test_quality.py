@@ -23,7 +23,7 @@ from gpis_grasp_ros.core.quality import (
 )
 from gpis_grasp_ros.core.sdf_bank import SdfBank
 from gpis_grasp_ros.tools.bench_planners import pf_python_loop
-from synthetic_shapes import certain_rectangle_posterior, disc_sdf, make_geometry, make_posterior, rectangle_sdf
+from support.synthetic_shapes import certain_rectangle_posterior, disc_sdf, make_geometry, make_posterior, rectangle_sdf
 
 GAMMA = 0.5
 G = make_geometry()

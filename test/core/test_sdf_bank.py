@@ -12,7 +12,7 @@ from gpis_grasp_ros.core.planners import PlannerParams
 from gpis_grasp_ros.core.planners.context import PlanningContext, evaluation_samples
 from gpis_grasp_ros.core.quality import force_closure_successes
 from gpis_grasp_ros.core.sdf_bank import SdfBank, _coefficient_records, pad_extrapolated
-from synthetic_shapes import disc_sdf, make_geometry
+from support.synthetic_shapes import disc_sdf, make_geometry
 
 
 def _random_grids(b: int, h: int, w: int, seed: int = 0) -> np.ndarray:
@@ -63,7 +63,7 @@ def test_monte_carlo_bank_builds_no_records() -> None:
 def test_pf_on_shipped_bags_equals_reference_bank() -> None:
     """On every shipped top-down bag, force-closure decisions on the fast bank equal those on a bank whose
     grids come from the numpy reference (padding by fancy indexing, ``np.gradient``)."""
-    from bag_posteriors import bag_posteriors
+    from support.bag_posteriors import bag_posteriors
 
     params = PlannerParams(n_shape_samples=200)
     for name, post in bag_posteriors().items():

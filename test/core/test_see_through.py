@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing import SensingParams, see_through_pixels, segment_frames
 from gpis_grasp_ros.core.table_frame import TableFrame
+from support.tilted_scene import Box, TiltedScene
 
 D435 = SensorModel.named('realsense_d400')
 TALL = Box(0.0, 0.0, 0.03, 0.02, 0.06)

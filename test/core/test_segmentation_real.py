@@ -12,7 +12,6 @@ import dataclasses
 import cv2
 import numpy as np
 import pytest
-from tilted_scene import Box, Cylinder, TiltedScene
 
 from gpis_grasp_ros.core.sensing import (
     SensingParams,
@@ -27,6 +26,7 @@ from gpis_grasp_ros.core.sensing.clear_body import _bounded_extension
 from gpis_grasp_ros.core.sensing.evidence import _colour_model
 from gpis_grasp_ros.core.sensing.objects import _Raster
 from gpis_grasp_ros.core.sensing.params import FLAT_JUMP_M, FLAT_STEP_M
+from support.tilted_scene import Box, Cylinder, TiltedScene
 
 RES = 0.004  # m per raster cell, the scale of the real captures' rasters (2 pixel footprints)
 

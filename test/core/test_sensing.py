@@ -287,7 +287,7 @@ def test_invalid_parameters():
 def test_shadow_is_not_transparency():
     """Opaque box and its strong shadow on the table (darker, same chromaticity): no colour evidence and
     no uncertain cell in the shadow, while a tinted (transparent-like) patch still is uncertain."""
-    from tilted_scene import Box, TiltedScene
+    from support.tilted_scene import Box, TiltedScene
 
     box = Box(0.0, 0.0, 0.025, 0.02, 0.04)
     scene = TiltedScene(40.0, boxes=[box], shadows=[(0.025, -0.02, 0.055, 0.02, 0.35)])

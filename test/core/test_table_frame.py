@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing import SensingParams, minimum_width, object_height, segment_frames
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
+from support.tilted_scene import Box, TiltedScene
 
 BOX = Box(0.0, 0.0, 0.03, 0.02, 0.04)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import cv2
@@ -10,13 +9,11 @@ import numpy as np
 import pytest
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
-from tilted_scene import Box, TiltedScene  # noqa: E402
-
 from gpis_grasp_ros.core.noise_model import SensorModel  # noqa: E402
 from gpis_grasp_ros.data import rgbd_import as ri  # noqa: E402
 from gpis_grasp_ros.data.bags import load_bag  # noqa: E402
 from gpis_grasp_ros.tools import import_rgbd  # noqa: E402
+from support.tilted_scene import Box, TiltedScene  # noqa: E402
 
 BOX = Box(0.0, 0.01, 0.03, 0.02, 0.04)
 

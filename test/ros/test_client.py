@@ -21,7 +21,7 @@ from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
 from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
 from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
 from gpis_grasp_ros.ros.player import BagPlayer
-from rosutil import RosHarness
+from support.rosutil import RosHarness
 
 BAG = Path(__file__).resolve().parents[2] / 'bags' / 'A_tape_dispenser.mcap'
 

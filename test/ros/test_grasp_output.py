@@ -173,11 +173,7 @@ def test_automatic_grasp_height():
 
 def _tilted_box_cloud(tilt: float, height: float, stamp: int):
     """One noisy frame of a 6 x 4 cm box of ``height`` seen at ``tilt`` (analytic renderer), as a PointCloud2."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
-    from tilted_scene import Box, TiltedScene
+    from support.tilted_scene import Box, TiltedScene
 
     scene = TiltedScene(tilt, distance_m=0.7, width=320, height=240, focal_px=285.0,
                         boxes=[Box(0.0, 0.0, 0.03, 0.02, height)])
@@ -196,7 +192,7 @@ def test_measured_object_height_sets_grasp_height_end_to_end():
     from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
     from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
     from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
-    from rosutil import RosHarness, segmentation_graph, wait_for
+    from support.rosutil import RosHarness, segmentation_graph, wait_for
 
     ros = RosHarness(threads=4)
     try:
@@ -239,7 +235,7 @@ def test_object_top_after_the_fit_completes_the_model():
     from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
     from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
     from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
-    from rosutil import RosHarness, wait_for
+    from support.rosutil import RosHarness, wait_for
 
     f = rcv.RclpyFactory()
     rot = quaternion_to_rotation(np.array([0.3, 0.0, 0.0, 0.954]) / np.linalg.norm([0.3, 0.0, 0.0, 0.954]))

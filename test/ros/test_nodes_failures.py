@@ -23,7 +23,7 @@ from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
 from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
 from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
 from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
-from rosutil import RosHarness, wait_for
+from support.rosutil import RosHarness, wait_for
 
 BAG_H = next((Path(__file__).resolve().parents[2] / 'bags').glob('H_*.mcap'))
 F = conversions.RclpyFactory()

@@ -28,7 +28,7 @@ from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
 from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
 from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
 from gpis_grasp_ros.ros.player import BagPlayer
-from rosutil import RosHarness, wait_for
+from support.rosutil import RosHarness, wait_for
 
 BAGS = sorted((Path(__file__).resolve().parents[2] / 'bags').glob('*.mcap'))
 MAX_OPENING = 0.09

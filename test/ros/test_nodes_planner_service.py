@@ -18,7 +18,7 @@ from gpis_grasp_ros.data.bags import load_bag, posterior_from_scene
 from gpis_grasp_ros.ros import conversions
 from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
 from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
-from rosutil import RosHarness
+from support.rosutil import RosHarness
 
 BAG_H = next((Path(__file__).resolve().parents[2] / 'bags').glob('H_*.mcap'))
 #: model_wait of the no-model fixture: each "no GPIS" answer takes this long

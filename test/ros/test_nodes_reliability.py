@@ -30,7 +30,7 @@ from gpis_grasp_ros.ros import conversions, validation
 from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
 from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
 from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
-from rosutil import RosHarness, wait_for
+from support.rosutil import RosHarness, wait_for
 
 BAG_H = next((Path(__file__).resolve().parents[2] / 'bags').glob('H_*.mcap'))
 F = conversions.RclpyFactory()

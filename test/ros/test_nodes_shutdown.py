@@ -20,7 +20,7 @@ from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.data.bags import load_bag, posterior_from_scene
 from gpis_grasp_ros.ros import conversions
 from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
-from rosutil import RosHarness, wait_for
+from support.rosutil import RosHarness, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 F = conversions.RclpyFactory()

@@ -32,7 +32,7 @@ from gpis_grasp_ros.ros import conversions
 from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
 from gpis_grasp_ros.tools.evaluation.real import evaluate_bag, evaluate_seeds
 from gpis_grasp_ros.tools.import_rgbd import main
-from rosutil import RosHarness, segmentation_graph, wait_for
+from support.rosutil import RosHarness, segmentation_graph, wait_for
 
 REAL = Path(__file__).resolve().parents[2] / 'bags' / 'real'
 BOTTLE = REAL / 'cleargrasp_000000080_bottle.mcap'

@@ -22,7 +22,7 @@ from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, RELIABLE_SENSOR_QOS
 from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
 from gpis_grasp_ros.ros.player import BagPlayer
 from gpis_grasp_ros.sim.scene import MaterialRegion, SceneSpec, write_scene_bag
-from rosutil import RosHarness, wait_for
+from support.rosutil import RosHarness, wait_for
 
 BAG_H = next((Path(__file__).resolve().parents[2] / 'bags').glob('H_*.mcap'))
 SQUARE = np.array([[-0.03, -0.02], [0.04, -0.02], [0.04, 0.02], [-0.03, 0.02]])

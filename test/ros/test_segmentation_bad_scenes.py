@@ -3,19 +3,14 @@ object → a latched reason on segmentation/status, nothing published, and the n
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
-from tilted_scene import Box, TiltedScene  # noqa: E402
-
 from gpis_grasp_ros.data import messages  # noqa: E402
 from gpis_grasp_ros.ros import conversions  # noqa: E402
-from rosutil import RosHarness, segmentation_graph, wait_for  # noqa: E402
+from support.rosutil import RosHarness, segmentation_graph, wait_for  # noqa: E402
+from support.tilted_scene import Box, TiltedScene  # noqa: E402
 
 F = conversions.RclpyFactory()
 

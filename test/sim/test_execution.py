@@ -9,7 +9,7 @@ import numpy as np
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.sim.execution import execute_grasp_trials
-from synthetic_shapes import make_geometry, rectangle_sdf
+from support.synthetic_shapes import make_geometry, rectangle_sdf
 
 
 def test_execute_grasp_trials_on_a_finer_true_grid() -> None:

@@ -21,9 +21,7 @@ import pytest
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.data import bagio, messages
 from gpis_grasp_ros.tools import demo, import_rgbd
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
-from tilted_scene import Box, TiltedScene  # noqa: E402
+from support.tilted_scene import Box, TiltedScene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 REAL = sorted((ROOT / 'bags' / 'real').glob('*.mcap'))

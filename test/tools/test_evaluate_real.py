@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import cv2
@@ -12,14 +11,12 @@ import numpy as np
 import pytest
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'core'))
-from tilted_scene import Box, TiltedScene  # noqa: E402
-
 from gpis_grasp_ros.data import rgbd_import as ri  # noqa: E402
 from gpis_grasp_ros.data.bags import load_bag  # noqa: E402
 from gpis_grasp_ros.tools import import_rgbd  # noqa: E402
 from gpis_grasp_ros.tools.evaluate_real import main  # noqa: E402
 from gpis_grasp_ros.tools.evaluate_real.manifest import load_manifest  # noqa: E402
+from support.tilted_scene import Box, TiltedScene  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 BAGS_MANIFEST = REPO / 'manifests' / 'bags_real.yaml'

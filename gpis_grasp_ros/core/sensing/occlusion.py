@@ -56,7 +56,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
        (for the rounding of the projections) the points of a ray up to a pixel's footprint in front of a
        specular wall passed as under the prism, and so did a projector shadow next to the object's silhouette
        (seen by a tilted camera its pixels lie next to the wall's): the wall's holes were placed a footprint
-       in front of the wall, the shadow's on the object. On the head bags (``test/core/bag_iou.py --holes``)
+       in front of the wall, the shadow's on the object. On the head bags (``scripts/bag_iou.py --holes``)
        the median placement error of the specular wall pixels fell from 2-5 mm to 0.5-2.2 mm and that of the
        projector shadows from 17-36 mm to 0-11 mm.
 

@@ -8,7 +8,7 @@ import pytest
 from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.core.sensing.noise_map import _extended_regions, _propagation_variance, noise_map
 from gpis_grasp_ros.core.sensing.rasterise import Cells
-from synthetic_shapes import make_geometry
+from support.synthetic_shapes import make_geometry
 
 
 def _cells(occupancy: np.ndarray, disagreement: np.ndarray) -> Cells:

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
-from tilted_scene import TiltedScene
 
 from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.core.sensing.camera import average_frames
 from gpis_grasp_ros.core.sensing.evidence import soft_evidence
 from gpis_grasp_ros.core.sensing.occlusion import _missing_height, place_feet, sensor_shadow
 from gpis_grasp_ros.core.sensing.table import fit_table, pixel_footprint
+from support.tilted_scene import TiltedScene
 
 
 def test_feet_of_a_bare_tilted_table_are_its_points():

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 from gpis_grasp_ros.core.sensing.rasterise import _accumulate, _table_area_weights, grid_around
 from gpis_grasp_ros.core.table_frame import TableFrame
+from support.tilted_scene import Box, TiltedScene
 
 
 @pytest.mark.parametrize('tilt', [0.0, 40.0])

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 from gpis_grasp_ros.core.sensing.objects import SOLID_SIGMAS
+from support.tilted_scene import Box, TiltedScene
 
 #: a noisy sensor (4 mm at every depth, no quantisation, no projector shadow): the depth-evidence threshold (2 x the
 #: table's RMS) lies below SOLID_SIGMAS sigma at every tilt, so noise can be evidence without being solid

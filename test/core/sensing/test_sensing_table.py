@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 import pytest
-from tilted_scene import Box, TiltedScene
 
 from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.core.sensing.camera import average_frames
 from gpis_grasp_ros.core.sensing.table import fit_table, pixel_footprint
+from support.tilted_scene import Box, TiltedScene
 
 
 @pytest.mark.parametrize('tilt', [0.0, 35.0, 55.0])

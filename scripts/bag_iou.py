@@ -5,7 +5,7 @@ too-wide check when the target is refused), GPIS as :func:`~gpis_grasp_ros.data.
 the mean shape is compared with the truth on the truth's own 1 mm grid (``TrueShape.iou_fine``: the GPIS
 mean interpolated there; parts of the object off the planning grid count as missed) and, as before, with the
 truth sampled at the planning grid's cell centres (``TrueShape.iou_on``), both through the camera frame.
-``python test/core/bag_iou.py`` prints the table (about 1 min); ``--shifts`` the spread of both measures over
+``python scripts/bag_iou.py`` prints the table (about 1 min); ``--shifts`` the spread of both measures over
 sub-cell shifts of the planning grid (about 5 min), ``--holes`` the placement error of no-return pixels,
 ``--timing`` segmentation times.
 """
@@ -26,7 +26,7 @@ from gpis_grasp_ros.core.table_frame import TableFrame
 from gpis_grasp_ros.data.bags import BagScene, load_bag
 from gpis_grasp_ros.tools.evaluation.truth import TrueShape
 
-BAG_DIR = Path(__file__).resolve().parents[2] / 'bags'
+BAG_DIR = Path(__file__).resolve().parents[1] / 'bags'
 
 
 def segment(scene: BagScene, params: SensingParams = SensingParams()) -> SensingResult:
