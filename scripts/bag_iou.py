@@ -129,11 +129,12 @@ def hole_errors(letters: str = 'BCDEH') -> None:
         _, above, missing, rays, table = captured['args'][:5]
         h = captured['h'][0] if isinstance(captured['h'], tuple) else captured['h']  # (heights, tested) or heights
         sim = Scene(head_spec(path.name[0]))
-        _, depth, is_wall, _ = sim._trace(sim._rays)
+        _, depth, is_wall, _ = sim.tracer.trace(sim.static.rays)
         placed = table.to_table(rays * ((h - table.offset_m) / (rays @ table.n))[..., None] - h[..., None] * table.n)[0]
         err = np.linalg.norm(placed - table.to_table(rays * depth[..., None])[0], axis=-1) * 1000
-        spec = sim._label == L_SPECULAR
-        kinds = {'specular top': spec & ~is_wall, 'specular wall': spec & is_wall, 'projector shadow': sim._shadow_px}
+        spec = sim.static.label == L_SPECULAR
+        kinds = {'specular top': spec & ~is_wall, 'specular wall': spec & is_wall,
+                 'projector shadow': sim.static.shadow_px}
         print(path.name[0], '  '.join(f'{k} ({(c & missing).sum()} px): {np.median(err[c & missing]):.1f} / '
                                       f'{np.percentile(err[c & missing], 90):.1f} mm'
                                       for k, c in kinds.items() if (c & missing).any()))

@@ -1,4 +1,4 @@
-"""Deterministic object sets for dataset-scale evaluation and cross-validation (issue 13).
+"""Deterministic object sets for dataset-scale evaluation and cross-validation of the hyperparameters.
 
 The paper tunes λ "using cross-validation over a set of validation shapes" (section VI-A) and α
 likewise (eq. 5); eight objects cannot support that. :func:`make_dataset` writes a *manifest*
@@ -24,7 +24,7 @@ so a dataset of N objects is a prefix of one of N' > N objects with the same see
   ``medium`` (<= w_g), ``large`` (> w_g: some directions cannot be grasped). ``min_width_m`` is the
   smallest caliper width (over 180 directions), the narrowest opening that can enclose the object.
 * **Materials**: with probability 0.35 the object is plain opaque; otherwise 1-2 regions of
-  ``transparent``, ``specular``, ``dark`` or ``noisy`` material (see :mod:`~gpis_grasp_ros.sim.scene`),
+  ``transparent``, ``specular``, ``dark`` or ``noisy`` material (see :mod:`~gpis_grasp_ros.sim.scene.spec`),
   each a box around a random interior point covering 30-80 % of the bounding box per side, or
   (probability 0.2) the whole object. ``material_class`` is ``opaque``, the single kind, or ``mixed``.
 * **Camera**: 0.5-0.8 m from the table point under the object; ``head`` (tilt 40-55° from straight

@@ -15,9 +15,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from gpis_grasp_ros.data import bagio
 from gpis_grasp_ros.data import messages as cv
+from gpis_grasp_ros.data.topics import GROUND_TRUTH_TOPICS
 from gpis_grasp_ros.ros import conversions as rcv
 from gpis_grasp_ros.ros import player
-from gpis_grasp_ros.sim.scene import GROUND_TRUTH_TOPICS, MaterialRegion, SceneSpec, write_scene_bag
+from gpis_grasp_ros.sim.scene import MaterialRegion, SceneSpec, write_scene_bag
 
 SQUARE = np.array([[-0.03, -0.02], [0.04, -0.02], [0.04, 0.02], [-0.03, 0.02]])
 

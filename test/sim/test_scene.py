@@ -12,12 +12,10 @@ from gpis_grasp_ros.core import noise_model
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.data import bagio
 from gpis_grasp_ros.data import messages as cv
+from gpis_grasp_ros.data.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS, TOPIC_TYPES
 from gpis_grasp_ros.sim import objects
 from gpis_grasp_ros.sim.scene import (
-    CAMERA_TOPICS,
     FRAME_ID,
-    GROUND_TRUTH_TOPICS,
-    TOPIC_TYPES,
     TRANSPARENT_TINT,
     MaterialRegion,
     Scene,
@@ -54,7 +52,7 @@ def small_spec(**kw) -> SceneSpec:
 
 def _pixels_of(scene: Scene, x0, y0, x1, y1, depth: float) -> np.ndarray:
     """Mask of pixels whose ray meets the plane z=depth inside the box (shrunk by 3 mm)."""
-    xy = scene.pixel_rays() * depth
+    xy = scene.window.pixel_rays() * depth
     return (xy[..., 0] > x0 + 0.003) & (xy[..., 0] < x1 - 0.003) & (xy[..., 1] > y0 + 0.003) & \
         (xy[..., 1] < y1 - 0.003)
 
@@ -141,7 +139,7 @@ def frames(scene):
 def test_intrinsics_and_crop(scene):
     fx, fy, cx, cy, w, h = scene.intrinsics
     assert fx == fy == 570.3
-    assert cx == pytest.approx(319.5 - scene.u0) and cy == pytest.approx(239.5 - scene.v0)
+    assert cx == pytest.approx(319.5 - scene.window.u0) and cy == pytest.approx(239.5 - scene.window.v0)
     # the object's top face, projected with the cropped intrinsics, lies inside the image
     top = SQUARE / (0.7 - H)
     u, v = cx + fx * top[:, 0], cy + fy * top[:, 1]
@@ -200,11 +198,11 @@ def test_projector_shadow_on_the_far_side(scene, frames):
     Table points x in (-0.0546, -0.0519) m are both visible past the top edge (-0.05 * 0.7 / 0.675)
     and hidden from the projector (0.075 m baseline) by the 2.5 cm high object."""
     zt = 0.7
-    xy = scene.pixel_rays() * zt
+    xy = scene.window.pixel_rays() * zt
     left = (xy[..., 0] > -0.0543) & (xy[..., 0] < -0.0522) & (np.abs(xy[..., 1]) < 0.02)
     right = (xy[..., 0] > 0.06 + 0.003) & (xy[..., 0] < 0.06 + 0.006) & (np.abs(xy[..., 1]) < 0.02)
-    assert np.isnan(scene._clean_depth[left]).mean() > 0.9
-    assert np.isfinite(scene._clean_depth[right]).all()
+    assert np.isnan(scene.static.clean_depth[left]).mean() > 0.9
+    assert np.isfinite(scene.static.clean_depth[right]).all()
 
 
 def test_ground_truth(scene):

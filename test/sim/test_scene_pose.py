@@ -1,4 +1,4 @@
-"""Simulator beyond top-down (issue 12, item 7): tilted camera pose, cast shadows, distractors, the
+"""Simulator beyond top-down: tilted camera pose, cast shadows, distractors, the
 RealSense D400 sensor model, and the shipped head-camera bags."""
 
 from __future__ import annotations
@@ -50,7 +50,8 @@ def tilted() -> Scene:
 
 
 def _camera_points(scene: Scene) -> np.ndarray:
-    return np.concatenate([scene._rays * scene._clean_depth[..., None], scene._clean_depth[..., None]], axis=-1)
+    depth = scene.static.clean_depth[..., None]
+    return np.concatenate([scene.static.rays * depth, depth], axis=-1)
 
 
 def test_tilted_ground_truth_pose(tilted):
@@ -61,11 +62,12 @@ def test_tilted_ground_truth_pose(tilted):
     np.testing.assert_allclose(g.table_normal, [0.0, -np.sin(t), -np.cos(t)], atol=1e-12)
     assert g.z == pytest.approx(DISTANCE * np.cos(t), abs=1e-12)
     # the look-at point T(0, 0) is on the optical axis at the given distance
-    np.testing.assert_allclose(tilted.table_to_camera(np.zeros(2)), [0.0, 0.0, DISTANCE], atol=1e-12)
+    np.testing.assert_allclose(tilted.pose.table_to_camera(np.zeros(2)), [0.0, 0.0, DISTANCE], atol=1e-12)
     com = tilted.ground_truth().center_of_mass
     xy, h = g.from_sensor(com)
     assert h == pytest.approx(0.0, abs=1e-12)
-    np.testing.assert_allclose(g.from_sensor(tilted.table_to_camera(polygon_centroid(validate_polygon(BOX))))[0], xy)
+    centroid = polygon_centroid(validate_polygon(BOX))
+    np.testing.assert_allclose(g.from_sensor(tilted.pose.table_to_camera(centroid))[0], xy)
 
 
 def test_tilted_depth_lies_on_the_true_shape(tilted):
@@ -74,9 +76,9 @@ def test_tilted_depth_lies_on_the_true_shape(tilted):
     gt = tilted.ground_truth()
     g = gt.geometry
     pts = _camera_points(tilted)
-    ok = np.isfinite(tilted._clean_depth)
+    ok = np.isfinite(tilted.static.clean_depth)
     xy, h = g.from_sensor(pts[ok])
-    obj = tilted._object[ok]
+    obj = tilted.static.object[ok]
     assert (obj == 0).sum() > 1000 and (obj == 1).sum() > 500 and (obj == 2).sum() > 100 and (obj == 3).sum() > 20
     np.testing.assert_allclose(h[obj == 0], 0.0, atol=1e-9)
     assert (h[obj == 1] > -1e-9).all() and (h[obj == 1] < H + 1e-9).all()
@@ -88,7 +90,7 @@ def test_tilted_depth_lies_on_the_true_shape(tilted):
     for index, d in ((2, CAN), (3, CUBE)):
         hd = h[obj == index]
         assert (hd < d.height + 1e-9).all() and np.isclose(hd, d.height, atol=1e-9).mean() > 0.3
-        dist = polygon_signed_distance(xy[obj == index] + tilted._c[:2], validate_polygon(d.outline))
+        dist = polygon_signed_distance(xy[obj == index] + tilted.pose.c[:2], validate_polygon(d.outline))
         assert dist.max() < 5e-4 and (dist < 0).mean() > 0.8
     # an independent plane fit to the table points gives the same normal
     table = pts[ok][obj == 0]
@@ -110,17 +112,17 @@ def test_cast_shadow_is_darker_with_the_same_chromaticity():
     spec = dict(outline=BOX, height=H, frames=2, seed=3, distractors=[], table_color=(180, 160, 120))
     lit = Scene(SceneSpec(**spec, light=(180.0, 45.0), shadow_strength=0.4))
     dark = Scene(SceneSpec(**spec, light=(180.0, 45.0), shadow_strength=0.0))  # same crop, no darkening
-    np.testing.assert_array_equal(lit._clean_depth, dark._clean_depth)
+    np.testing.assert_array_equal(lit.static.clean_depth, dark.static.clean_depth)
     assert Scene(SceneSpec(**spec)).shadow_fraction.max() == 0.0
-    xy = lit.table_points(lit.pixel_rays())
+    xy = lit.pose.table_points(lit.window.pixel_rays())
     band = (xy[..., 0] > 0.05 + 0.004) & (xy[..., 0] < 0.05 + H - 0.002) & (np.abs(xy[..., 1]) < 0.025)
-    band &= lit._object == 0
-    free = (xy[..., 0] > 0.05 + H + 0.003) & (np.abs(xy[..., 1]) < 0.025) & (lit._object == 0)
+    band &= lit.static.object == 0
+    free = (xy[..., 0] > 0.05 + H + 0.003) & (np.abs(xy[..., 1]) < 0.025) & (lit.static.object == 0)
     assert band.sum() > 50 and free.sum() > 10
     assert (lit.shadow_fraction[band] == 1.0).all() and (lit.shadow_fraction[free] == 0.0).all()
-    ratio = lit._colour[band].mean(axis=0) / dark._colour[band].mean(axis=0)
+    ratio = lit.static.colour[band].mean(axis=0) / dark.static.colour[band].mean(axis=0)
     np.testing.assert_allclose(ratio, 0.6, atol=1e-9)  # same factor on R, G, B: same chromaticity
-    np.testing.assert_array_equal(lit._colour[free], dark._colour[free])
+    np.testing.assert_array_equal(lit.static.colour[free], dark.static.colour[free])
 
 
 def test_transparent_parts_cast_no_shadow():
@@ -135,14 +137,14 @@ def test_realsense_noise_and_quantisation():
     depth = np.stack([f.depth for f in s.frames()]).astype(np.float64)
     finite = depth[np.isfinite(depth)]
     np.testing.assert_allclose(finite, np.round(finite * 1000) / 1000, atol=1e-6)  # 1 mm depth units
-    table = (s._object == 0) & ~s._edge & np.isfinite(s._clean_depth)
-    z = s._clean_depth[table]
+    table = (s.static.object == 0) & ~s.static.edge & np.isfinite(s.static.clean_depth)
+    z = s.static.clean_depth[table]
     std = np.nanstd(depth[:, table], axis=0, ddof=1)
     model = noise_model.SensorModel.named('realsense_d400').sigma(z)
     ratio = np.sqrt(np.mean(std ** 2) / np.mean(model ** 2 + 1e-6 / 12))
     assert ratio == pytest.approx(1.0, abs=0.08)
     carmine = Scene(tilted_spec(frames=12, distractors=[]))
-    c_table = (carmine._object == 0) & ~carmine._edge & np.isfinite(carmine._clean_depth)
+    c_table = (carmine.static.object == 0) & ~carmine.static.edge & np.isfinite(carmine.static.clean_depth)
     c_std = np.nanstd(np.stack([f.depth for f in carmine.frames()]).astype(np.float64)[:, c_table], axis=0, ddof=1)
     assert np.mean(std) > 1.5 * np.mean(c_std)  # the D400 is noisier at 0.9 m
 
@@ -231,5 +233,5 @@ def test_head_bag_round_trip(tmp_path):
     outline = cv.polygon_stamped_to_numpy(msgs['/ground_truth/outline'])
     _, h = gt.geometry.from_sensor(outline)
     np.testing.assert_allclose(h, 0.0, atol=1e-6)  # float32 vertices on the table plane
-    assert np.count_nonzero(scene._label[scene._object == 1] == L_OPAQUE) > 100  # the switch body is seen
-    assert scene.shadow_fraction.sum() > 20 and np.count_nonzero(scene._object >= 2) > 50  # shadow, distractor
+    assert np.count_nonzero(scene.static.label[scene.static.object == 1] == L_OPAQUE) > 100  # the switch body is seen
+    assert scene.shadow_fraction.sum() > 20 and np.count_nonzero(scene.static.object >= 2) > 50  # shadow, distractor
