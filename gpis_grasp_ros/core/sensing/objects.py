@@ -305,8 +305,9 @@ def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, s
     area_m2 = np.bincount(raster.labels.ravel(), minlength=n_lab) * raster.res ** 2
     ix, iy, ok = raster.cell(foot_xy)
     sel = solid & (px_labels > 0) & ok
-    cells = np.unique(np.stack([px_labels[sel], iy[sel] * raster.labels.shape[1] + ix[sel]], axis=1), axis=0)
-    solid_m2 = np.bincount(cells[:, 0], minlength=n_lab) * raster.res ** 2
+    n_cells = raster.labels.size  # one key per (label, cell): the distinct cells of each label
+    keys = np.unique(px_labels[sel].astype(np.int64) * n_cells + (iy[sel] * raster.labels.shape[1] + ix[sel]))
+    solid_m2 = np.bincount(keys // n_cells, minlength=n_lab) * raster.res ** 2
     kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2)
                       & (solid_m2 >= params.min_object_area_m2))[0]
     return kept[kept > 0]
