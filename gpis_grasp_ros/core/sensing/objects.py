@@ -5,7 +5,7 @@ border or too wide for the gripper."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import cv2
@@ -38,14 +38,19 @@ class _Raster:
     origin: np.ndarray  # (2,) m
     res: float
     labels: np.ndarray  # (ny, nx) int32 component labels after closing (0 = none)
+    _last: tuple | None = field(default=None, repr=False)  # (xy, its cells): the frame's feet are asked again
 
     def cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(column, row, in the raster) of the cell under each table point ``xy`` (..., 2) (0, 0 outside)."""
+        if self._last is not None and self._last[0] is xy:
+            return self._last[1]
         idx = np.floor((np.asarray(xy) - self.origin) / self.res)
         ny, nx = self.labels.shape
         ok = np.isfinite(idx).all(axis=-1) & (idx[..., 0] >= 0) & (idx[..., 0] < nx) & (idx[..., 1] >= 0) \
             & (idx[..., 1] < ny)
         idx = np.where(ok[..., None], idx, 0).astype(np.int64)
-        return idx[..., 0], idx[..., 1], ok
+        self._last = (xy, (idx[..., 0], idx[..., 1], ok))
+        return self._last[1]
 
 
 def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, np.ndarray]:

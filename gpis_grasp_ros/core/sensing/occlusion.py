@@ -20,7 +20,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SHADOW_HULL_SPAN_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.ray_kernels import draw_columns, prism_heights
+from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, draw_columns, prism_heights
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure
 from gpis_grasp_ros.core.table_frame import TableFrame
 
@@ -96,14 +96,9 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     inner = np.linspace(0.0, 1.0, int(np.clip(np.ceil(np.nanmax(span, initial=1.0)) + 1, 2, 64)))[1:-1]
     fractions = np.linspace(1.0, 0.0, samples)[:-1]  # the last sample is the table itself (height 0)
     placed = prism_heights(np.ascontiguousarray(ray), ray_n, top_h, table.n, float(table.offset_m), fractions, inner,
-                           _cam(intrinsics), obj)
+                           camera_vector(intrinsics), obj)
     out[vs, us] = placed
     return (out, tested) if return_tested else out
-
-
-def _cam(intrinsics: CameraIntrinsics) -> np.ndarray:
-    """(fx, fy, cx, cy) for the compiled loops."""
-    return np.array([intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy], dtype=np.float64)
 
 
 def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray, depth: np.ndarray,
@@ -139,7 +134,7 @@ def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray
     foot = top - h[:, None] * table.n
     span = np.linalg.norm(intrinsics.project(top) - intrinsics.project(foot), axis=-1)
     n = np.clip(np.ceil(np.nan_to_num(span)).astype(np.int64) + 1, 1, max_samples)  # samples per column
-    draw_columns(foot, h, n, table.n, False, _cam(intrinsics), entry, 0, 0, True)  # the point itself excluded
+    draw_columns(foot, h, n, table.n, False, camera_vector(intrinsics), entry, 0, 0, True)  # the point itself excluded
     # behind the columns of the whole 3 x 3 neighbourhood: a column rounded onto the pixel beside the
     # object's silhouette does not cover it
     behind_all = cv2.dilate(entry.astype(np.float32), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
@@ -173,7 +168,7 @@ def column_zbuffer(top: np.ndarray, h: np.ndarray, table: TableFrame, intrinsics
     if top.shape[0] == 0:
         return zbuf
     n = np.clip(np.ceil(np.linalg.norm(uv_top - uv_foot, axis=-1)).astype(np.int64) + 1, 2, max_samples)
-    draw_columns(foot, h, n, table.n, True, _cam(intrinsics), zbuf, u0, v0, False)
+    draw_columns(foot, h, n, table.n, True, camera_vector(intrinsics), zbuf, u0, v0, False)
     return zbuf
 
 

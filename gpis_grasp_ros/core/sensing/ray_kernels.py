@@ -4,12 +4,18 @@ placing a no-return pixel on its ray.
 They do per point what the array code around them would do with one temporary array per operation (the
 same IEEE operations in the same order, so the same numbers), but point by point with early exits: a column
 is drawn sample by sample, and a ray's search stops at its first sample under the prism and a sample's test
-at its first pixel off the object. ``cam`` is (fx, fy, cx, cy) of :class:`~.camera.CameraIntrinsics`."""
+at its first pixel off the object. ``cam`` is (fx, fy, cx, cy) of :class:`~.camera.CameraIntrinsics`
+(:func:`camera_vector`)."""
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+
+def camera_vector(intrinsics) -> np.ndarray:
+    """(fx, fy, cx, cy) of a :class:`~.camera.CameraIntrinsics`, as the loops take it."""
+    return np.array([intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy], dtype=np.float64)
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -89,4 +95,20 @@ def prism_heights(ray, ray_n, top_h, normal, offset, fractions, inner, cam, obj)
             if under:
                 out[i] = hk
                 break
+    return out
+
+
+@njit(cache=True, nogil=True)
+def under_prism(base, normal, heights, cam, sil):
+    """Whether each table point ``base`` (K, 3) (camera frame) is under the prism whose image is ``sil``: the
+    points ``base + h normal`` at every one of ``heights`` project onto ``sil`` pixels."""
+    out = np.zeros(base.shape[0], dtype=np.bool_)
+    for i in range(base.shape[0]):
+        ok = True
+        for h in heights:
+            if not _on_object(base[i, 0] + h * normal[0], base[i, 1] + h * normal[1], base[i, 2] + h * normal[2],
+                              cam, sil):
+                ok = False
+                break
+        out[i] = ok
     return out

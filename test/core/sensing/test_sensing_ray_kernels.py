@@ -17,8 +17,9 @@ from tilted_scene import Box, TiltedScene  # noqa: E402
 
 from gpis_grasp_ros.core.noise_model import SensorModel  # noqa: E402
 from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics  # noqa: E402
-from gpis_grasp_ros.core.sensing.occlusion import _cam, column_zbuffer, see_through_pixels  # noqa: E402
-from gpis_grasp_ros.core.sensing.ray_kernels import prism_heights  # noqa: E402
+from gpis_grasp_ros.core.sensing.clear_body import prism_footprint  # noqa: E402
+from gpis_grasp_ros.core.sensing.occlusion import column_zbuffer, see_through_pixels  # noqa: E402
+from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, prism_heights  # noqa: E402
 from gpis_grasp_ros.core.table_frame import TableFrame  # noqa: E402
 
 D435 = SensorModel.named('realsense_d400')
@@ -75,6 +76,17 @@ def _prism_reference(ray, ray_n, top_h, table, fractions, inner, intr, obj):
     return np.where(done, h_k[np.arange(ray.shape[0]), np.argmax(under, axis=1)], 0.0)
 
 
+def _footprint_reference(cells_xy, silhouette, table, intr, height_m, step_m=0.003):
+    import cv2
+    sil = cv2.dilate(silhouette.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    base = table.to_camera(cells_xy)
+    under = np.ones(base.shape[:-1], dtype=bool)
+    for h in np.linspace(0.0, height_m, max(2, int(np.ceil(height_m / step_m)) + 1)):
+        u, v, inside = intr.pixel_index(base + h * table.n)
+        under &= inside & sil[v, u]
+    return under
+
+
 def _scene(tilt):
     scene = TiltedScene(tilt, boxes=BOXES)
     _, depth, _ = scene.frames(1, seed=0, model=D435)
@@ -114,9 +126,22 @@ def test_prism_heights_equal_the_array_code(tilt):
     top_h = rng.uniform(0.0, 0.07, ray.shape[0])
     ray_n = ray @ table.n
     fractions, inner = np.linspace(1.0, 0.0, 24)[:-1], np.linspace(0.0, 1.0, 9)[1:-1]
-    got = prism_heights(ray, ray_n, top_h, table.n, float(table.offset_m), fractions, inner, _cam(intr), solid)
+    got = prism_heights(ray, ray_n, top_h, table.n, float(table.offset_m), fractions, inner, camera_vector(intr), solid)
     assert (got > 0).sum() > 100 and (got == 0).sum() > 100
     assert np.array_equal(got, _prism_reference(ray, ray_n, top_h, table, fractions, inner, intr, solid))
+
+
+@pytest.mark.parametrize('tilt', [0.0, 30.0, 50.0])
+def test_prism_footprint_equals_the_array_code(tilt):
+    intr, table, points, height, solid = _scene(tilt)
+    xy = table.to_table(points[solid])[0]
+    lo, hi = xy.min(axis=0) - 0.01, xy.max(axis=0) + 0.01
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0], 0.002), np.arange(lo[1], hi[1], 0.002))
+    cells = np.stack([gx, gy], axis=-1)
+    for h in (0.0, 0.02, 0.05):
+        got = prism_footprint(cells, solid, table, intr, h)
+        assert got.shape == gx.shape and got.sum() > 50
+        assert np.array_equal(got, _footprint_reference(cells, solid, table, intr, h))
 
 
 def test_a_ray_leaving_the_image_is_under_no_prism():
@@ -125,5 +150,5 @@ def test_a_ray_leaving_the_image_is_under_no_prism():
     obj = np.ones((20, 20), bool)
     ray = np.array([[0.0, 0.0, 1.0], [0.09, 0.0, 1.0], [0.11, 0.0, 1.0]])  # centre, last column, beyond it
     got = prism_heights(ray, ray @ table.n, np.full(3, 0.05), table.n, 0.5, np.linspace(1.0, 0.0, 5)[:-1],
-                        np.zeros(0), _cam(intr), obj)
+                        np.zeros(0), camera_vector(intr), obj)
     assert got.tolist() == [0.05, 0.05, 0.0]
