@@ -73,18 +73,6 @@ def test_a_clear_wall_facing_a_tilted_camera_is_seen_through(tilt):
         assert np.median(np.abs(entry - clean)[flagged]) < 0.004
 
 
-def test_chunked_columns_give_the_same_answer(monkeypatch):
-    """The columns are processed in chunks of samples (bounded memory); chunk boundaries change nothing."""
-    from gpis_grasp_ros.core.sensing import occlusion
-    scene = TiltedScene(50.0, boxes=[TALL, Box(0.07, 0.03, 0.015, 0.04, 0.03)])
-    _, depth, _ = _clear_wall_frame(scene, TALL, 0)
-    whole = _flagged(scene, depth[0])
-    monkeypatch.setattr(occlusion, 'SEE_THROUGH_CHUNK', 997)  # hundreds of chunks of whole columns
-    chunked = _flagged(scene, depth[0])
-    assert whole[0].sum() > 300
-    assert np.array_equal(whole[0], chunked[0]) and np.array_equal(whole[1], chunked[1])
-
-
 @pytest.mark.parametrize('tilt', [0.0, 30.0, 50.0])
 def test_an_opaque_box_breaks_no_column(tilt):
     scene = TiltedScene(tilt, boxes=[TALL, Box(0.07, 0.03, 0.015, 0.04, 0.03)])

@@ -22,6 +22,7 @@ from gpis_grasp_ros.core.sensing.params import (
     PRISM_STEP_M,
     SensingParams,
 )
+from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, under_prism
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
 
@@ -114,11 +115,10 @@ def prism_footprint(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFr
     this undoes the sweep. ``height_m`` = 0 gives the silhouette's own table points."""
     sil = cv2.dilate(np.asarray(silhouette, dtype=np.uint8), np.ones((3, 3), np.uint8)) > 0
     base = table.to_camera(np.asarray(cells_xy, dtype=np.float64))  # camera frame, on the table
-    under = np.ones(base.shape[:-1], dtype=bool)
-    for h in np.linspace(0.0, max(height_m, 0.0), max(2, int(math.ceil(height_m / step_m)) + 1)):
-        u, v, inside = intrinsics.pixel_index(base + h * table.n)  # h above the table, towards the camera
-        under &= inside & sil[v, u]
-    return under
+    heights = np.linspace(0.0, max(height_m, 0.0), max(2, int(math.ceil(height_m / step_m)) + 1))
+    # h above the table, towards the camera
+    return under_prism(np.ascontiguousarray(base.reshape(-1, 3)), table.n, heights, camera_vector(intrinsics),
+                       sil).reshape(base.shape[:-1])
 
 
 def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,

@@ -37,7 +37,14 @@ def _reconstruct(marker: np.ndarray, mask: np.ndarray) -> np.ndarray:
 def _flood(markers: np.ndarray, dist: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Watershed of -``dist`` from ``markers`` inside ``mask`` by flooding: level by level from the highest
     distance down (half-cell steps), the labelled regions grow (8-neighbour dilations) into the unlabelled
-    mask cells at or above the level, so each cell joins the blob it is deepest in."""
+    mask cells at or above the level, so each cell joins the blob it is deepest in. Only the mask's bounding box
+    (and the one cell around it the dilations read) is flooded: nothing grows outside the mask."""
+    result = np.zeros(mask.shape, np.int32)
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        return result
+    box = np.s_[max(int(rows.min()) - 1, 0):int(rows.max()) + 2, max(int(cols.min()) - 1, 0):int(cols.max()) + 2]
+    markers, dist, mask = markers[box], dist[box], mask[box]
     out = np.where(mask, markers, 0).astype(np.float32)
     kernel = np.ones((3, 3), np.uint8)
     levels = np.unique(np.floor(dist[mask & (markers == 0)] * 2.0) / 2.0)[::-1]
@@ -50,7 +57,8 @@ def _flood(markers: np.ndarray, dist: np.ndarray, mask: np.ndarray) -> np.ndarra
             if not take.any():
                 break
             out[take] = grown[take]
-    return out.astype(np.int32)
+    result[box] = out.astype(np.int32)
+    return result
 
 
 def _filled(mask: np.ndarray) -> np.ndarray:

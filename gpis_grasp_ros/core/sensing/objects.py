@@ -5,7 +5,7 @@ border or too wide for the gripper."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import cv2
@@ -38,14 +38,19 @@ class _Raster:
     origin: np.ndarray  # (2,) m
     res: float
     labels: np.ndarray  # (ny, nx) int32 component labels after closing (0 = none)
+    _last: tuple | None = field(default=None, repr=False)  # (xy, its cells): the frame's feet are asked again
 
     def cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(column, row, in the raster) of the cell under each table point ``xy`` (..., 2) (0, 0 outside)."""
+        if self._last is not None and self._last[0] is xy:
+            return self._last[1]
         idx = np.floor((np.asarray(xy) - self.origin) / self.res)
         ny, nx = self.labels.shape
         ok = np.isfinite(idx).all(axis=-1) & (idx[..., 0] >= 0) & (idx[..., 0] < nx) & (idx[..., 1] >= 0) \
             & (idx[..., 1] < ny)
         idx = np.where(ok[..., None], idx, 0).astype(np.int64)
-        return idx[..., 0], idx[..., 1], ok
+        self._last = (xy, (idx[..., 0], idx[..., 1], ok))
+        return self._last[1]
 
 
 def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, np.ndarray]:
@@ -305,8 +310,9 @@ def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, s
     area_m2 = np.bincount(raster.labels.ravel(), minlength=n_lab) * raster.res ** 2
     ix, iy, ok = raster.cell(foot_xy)
     sel = solid & (px_labels > 0) & ok
-    cells = np.unique(np.stack([px_labels[sel], iy[sel] * raster.labels.shape[1] + ix[sel]], axis=1), axis=0)
-    solid_m2 = np.bincount(cells[:, 0], minlength=n_lab) * raster.res ** 2
+    n_cells = raster.labels.size  # one key per (label, cell): the distinct cells of each label
+    keys = np.unique(px_labels[sel].astype(np.int64) * n_cells + (iy[sel] * raster.labels.shape[1] + ix[sel]))
+    solid_m2 = np.bincount(keys // n_cells, minlength=n_lab) * raster.res ** 2
     kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2)
                       & (solid_m2 >= params.min_object_area_m2))[0]
     return kept[kept > 0]

@@ -4,7 +4,6 @@ without a return is placed on its ray (the single-view visual hull of the object
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from typing import NamedTuple
 
 import cv2
@@ -18,10 +17,10 @@ from gpis_grasp_ros.core.sensing.morphology import _filled, nearest_pixel
 from gpis_grasp_ros.core.sensing.params import (
     MISSING_BRIDGE_M,
     MISSING_HEIGHT_WINDOW_M,
-    SEE_THROUGH_CHUNK,
     SHADOW_HULL_SPAN_PX,
     SensingParams,
 )
+from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, draw_columns, prism_heights
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure
 from gpis_grasp_ros.core.table_frame import TableFrame
 
@@ -89,56 +88,17 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
         return (out, tested) if return_tested else out
     # the object's pixels, not dilated: a point projecting onto the pixel next to the silhouette is not on it
     obj = above | missing
-
-    def on_object(points: np.ndarray) -> np.ndarray:
-        u, v, inside = intrinsics.pixel_index(points)
-        return inside & obj[v, u]
-
     # from the top down, the first sample whose foot has its whole vertical segment 0..H seen as object, checked
-    # at every image pixel it spans (the object mask as it is, not dilated);
-    # pixels are dropped from the search once placed
+    # at every image pixel it spans (the object mask as it is, not dilated)
     lift = top_h[:, None] * table.n
     top_foot = ray * ((top_h - table.offset_m) / ray_n)[:, None] - lift
     span = np.linalg.norm(intrinsics.project(top_foot + lift) - intrinsics.project(top_foot), axis=-1)
     inner = np.linspace(0.0, 1.0, int(np.clip(np.ceil(np.nanmax(span, initial=1.0)) + 1, 2, 64)))[1:-1]
-    placed = np.zeros(vs.size)
-    todo = np.arange(vs.size)
     fractions = np.linspace(1.0, 0.0, samples)[:-1]  # the last sample is the table itself (height 0)
-    for block in np.array_split(fractions, max(1, len(fractions) // 6)):
-        h_k = top_h[todo, None] * block[None, :]  # (m, B)
-        foot = ray[todo, None, :] * ((h_k - table.offset_m) / ray_n[todo, None])[..., None] - h_k[..., None] * table.n
-        rows, cols = np.nonzero(on_object(foot) & on_object(foot + lift[todo, None, :]))
-        for f in inner:
-            if rows.size == 0:
-                break
-            keep = on_object(foot[rows, cols] + f * lift[todo[rows]])
-            rows, cols = rows[keep], cols[keep]
-        under = np.zeros(h_k.shape, dtype=bool)
-        under[rows, cols] = True
-        done = under.any(axis=1)
-        placed[todo[done]] = h_k[done, np.argmax(under[done], axis=1)]
-        todo = todo[~done]
-        if todo.size == 0:
-            break
+    placed = prism_heights(np.ascontiguousarray(ray), ray_n, top_h, table.n, float(table.offset_m), fractions, inner,
+                           camera_vector(intrinsics), obj)
     out[vs, us] = placed
     return (out, tested) if return_tested else out
-
-
-def _column_samples(foot: np.ndarray, h: np.ndarray, n: np.ndarray, normal: np.ndarray,
-                    include_point: bool) -> Iterator[np.ndarray]:
-    """Points on the solid columns from ``foot`` (k, 3) up ``h`` (k,) m along ``normal``: ``n[i]`` evenly spaced
-    samples of column i (from the foot up to the point itself with ``include_point``, else up to but not
-    including it), yielded in chunks of about ``SEE_THROUGH_CHUNK`` samples (bounded memory in a cluttered
-    frame) as (m, 3) arrays."""
-    ends = np.cumsum(n)
-    bounds = np.searchsorted(ends, np.arange(SEE_THROUGH_CHUNK, int(ends[-1]), SEE_THROUGH_CHUNK), side='right')
-    for a, b in zip(np.r_[0, bounds], np.r_[bounds, foot.shape[0]], strict=True):
-        if b <= a:
-            continue
-        column = np.repeat(np.arange(a, b), n[a:b])
-        k = np.arange(column.size) + (ends[a] - n[a]) - (ends[column] - n[column])  # index within its column
-        frac = k / (n[column] - 1) if include_point else k / n[column]
-        yield foot[column] + (frac * h[column])[:, None] * normal
 
 
 def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray, depth: np.ndarray,
@@ -174,9 +134,7 @@ def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray
     foot = top - h[:, None] * table.n
     span = np.linalg.norm(intrinsics.project(top) - intrinsics.project(foot), axis=-1)
     n = np.clip(np.ceil(np.nan_to_num(span)).astype(np.int64) + 1, 1, max_samples)  # samples per column
-    for samples in _column_samples(foot, h, n, table.n, include_point=False):  # the point itself excluded
-        u, v, inside = intrinsics.pixel_index(samples)
-        np.minimum.at(entry, (v[inside], u[inside]), samples[inside, 2])
+    draw_columns(foot, h, n, table.n, False, camera_vector(intrinsics), entry, 0, 0, True)  # the point itself excluded
     # behind the columns of the whole 3 x 3 neighbourhood: a column rounded onto the pixel beside the
     # object's silhouette does not cover it
     behind_all = cv2.dilate(entry.astype(np.float32), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
@@ -209,12 +167,8 @@ def column_zbuffer(top: np.ndarray, h: np.ndarray, table: TableFrame, intrinsics
     top, foot, h, uv_top, uv_foot = top[ok], foot[ok], h[ok], uv_top[ok], uv_foot[ok]
     if top.shape[0] == 0:
         return zbuf
-    lo = np.array([u0, v0])
     n = np.clip(np.ceil(np.linalg.norm(uv_top - uv_foot, axis=-1)).astype(np.int64) + 1, 2, max_samples)
-    for samples in _column_samples(foot, h, n, table.n, include_point=True):
-        uv = np.round(intrinsics.project(samples)).astype(np.int64) - lo
-        keep = (uv[:, 0] >= 0) & (uv[:, 0] < zbuf.shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < zbuf.shape[0])
-        np.minimum.at(zbuf, (uv[keep, 1], uv[keep, 0]), samples[keep, 2])
+    draw_columns(foot, h, n, table.n, True, camera_vector(intrinsics), zbuf, u0, v0, False)
     return zbuf
 
 

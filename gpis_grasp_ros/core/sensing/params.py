@@ -28,7 +28,6 @@ CHROMA_SMOOTH_PX = 1.5  # Gaussian sigma (px) of the colour image before its chr
 CHROMA_DARK = 20.0  # darker pixels (mean of 0-255 RGB) have no reliable chromaticity
 CHROMA_MIN_SIGMA = 0.006  # floor of the table's chromaticity spread (a noiseless table would flag every halo)
 CHROMA_CLEAR_FRACTION = 0.5  # a target with fewer of its pixels seen in depth is clear: its body is grown
-SEE_THROUGH_CHUNK = 1 << 19  # column samples per chunk in see_through_pixels (~40 MB of temporaries)
 SHADOW_HULL_SPAN_PX = 3.0  # a column imaged this long or longer: the visual hull decides (_missing_height)
 CLEAR_BODY_FRACTION = 0.25  # a target with fewer of its pixels seen in depth is a clear body (prism footprint)
 PRISM_STEP_M = 0.003  # height step (m) of the visual-hull test of a clear body's prism

@@ -144,12 +144,6 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     return hidden.reshape(m_y, sub, m_x, sub).mean(axis=(1, 3))
 
 
-def _accumulate(cell: np.ndarray, maps: list[np.ndarray], n_cells: int) -> list[np.ndarray]:
-    """Per-cell sums of pixel maps (``cell`` = flat cell index, -1 = not in the grid)."""
-    ok = cell >= 0
-    return [np.bincount(cell[ok], weights=m[ok], minlength=n_cells) for m in maps]
-
-
 def grid_around(target_xy: np.ndarray, table: TableFrame, params: SensingParams, frame_id: str) -> GridGeometry:
     """The square M x M grid in the table plane: the target's footprint bounding box plus ``margin`` of its
     larger side on every side."""
@@ -197,14 +191,22 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     in_grid = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < m) & (row >= 0) & (row < m)
     miss_t = missing_px & target_px
     informative = in_grid & (valid | miss_t)
-    cell = np.where(informative, np.nan_to_num(row) * m + np.nan_to_num(col), -1).astype(np.int64)
     valid_px = valid.astype(np.float64)
     occ_t = np.where(target_px, occ, 0.0)  # other objects are not the target: table in its grid
-    wt = _table_area_weights(foot_xy, fit.table.to_table(feet.hit_points)[0], np.isfinite(foot_xy).all(axis=-1))
-    seen_in_depth = (target_px & valid & (p_d > 0.5)).astype(np.float64)
-    sums = _accumulate(cell, [wt * v for v in (np.ones((h, w)), occ_t, p_d * valid_px, p_c * valid_px, valid_px,
-                                               miss_t.astype(np.float64), np.where(valid, var_z, 0.0),
-                                               seen_in_depth)], m * m)
+    # only the informative pixels reach a cell: the area weights are taken over their bounding box (plus the
+    # 2 pixels the median filter and the differences read around it)
+    vs, us = np.nonzero(informative)
+    cell = (row[vs, us] * m + col[vs, us]).astype(np.int64)
+    box = np.s_[max(int(vs.min()) - 2, 0):int(vs.max()) + 3, max(int(us.min()) - 2, 0):int(us.max()) + 3]
+    wt_box = _table_area_weights(foot_xy[box], fit.table.to_table(feet.hit_points[box])[0],
+                                 np.isfinite(foot_xy[box]).all(axis=-1))
+    wt = wt_box[vs - box[0].start, us - box[1].start]
+    seen_in_depth = target_px & valid & (p_d > 0.5)
+    vp = valid_px[vs, us]
+    sums = [np.bincount(cell, weights=wt * v, minlength=m * m)
+            for v in (np.ones(vs.size), occ_t[vs, us], p_d[vs, us] * vp, p_c[vs, us] * vp, vp,
+                      miss_t[vs, us].astype(np.float64), np.where(valid[vs, us], var_z[vs, us], 0.0),
+                      seen_in_depth[vs, us].astype(np.float64))]
     n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_seen = (s.reshape(m, m) for s in sums)
     depth_seen_cell = s_seen > 0.5 * np.maximum(n_inf, 1e-12)  # mostly the target seen in depth (before any fill)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
-from gpis_grasp_ros.core.sensing.rasterise import _accumulate, _table_area_weights, grid_around
+from gpis_grasp_ros.core.sensing.rasterise import _table_area_weights, grid_around
 from gpis_grasp_ros.core.table_frame import TableFrame
 from support.tilted_scene import Box, TiltedScene
 
@@ -43,12 +43,20 @@ def test_grid_around_a_footprint():
     assert (g.origin_x, g.origin_y) == pytest.approx((0.03 - 0.045, 0.02 - 0.045))
 
 
-def test_area_weights_of_a_flat_table_and_accumulation():
-    """Feet on the table itself cover a table pixel's area each (weight 1); per-cell sums skip cells -1."""
+def test_area_weights_of_a_flat_table_and_of_a_window():
+    """Feet on the table itself cover a table pixel's area each (weight 1); a window with 2 pixels around it
+    gives its inner pixels the weights of the whole image (the median filter and the differences read no
+    farther)."""
     yy, xx = np.mgrid[:12, :15].astype(np.float64)
     feet = np.stack([0.002 * xx + 0.0005 * yy, 0.003 * yy], axis=-1)
     w = _table_area_weights(feet, feet, np.ones((12, 15), bool))
     assert np.allclose(w[2:-2, 2:-2], 1.0, atol=1e-4)  # the median filter's border aside
-    cell = np.array([0, 2, 2, -1])
-    sums = _accumulate(cell, [np.array([1.0, 2.0, 3.0, 4.0])], 4)[0]
-    assert np.array_equal(sums, [1.0, 0.0, 5.0, 0.0])
+    bumpy = feet + np.random.default_rng(0).normal(0.0, 5e-4, feet.shape)
+    valid = np.random.default_rng(1).random((12, 15)) > 0.2
+    whole = _table_area_weights(bumpy, feet, valid)
+    for box in (np.s_[3:9, 4:12], np.s_[0:7, 0:9], np.s_[5:12, 8:15]):
+        part = _table_area_weights(bumpy[box], feet[box], valid[box])
+        inner = tuple(slice(b.start + (2 if b.start else 0), b.stop - (2 if b.stop < n else 0))
+                      for b, n in zip(box, (12, 15), strict=True))
+        rel = tuple(slice(i.start - b.start, i.stop - b.start) for i, b in zip(inner, box, strict=True))
+        assert np.array_equal(part[rel], whole[inner])

@@ -1,0 +1,114 @@
+"""Compiled (numba) loops of the occlusion stage: solid columns drawn into a depth buffer, and the prism test
+placing a no-return pixel on its ray.
+
+They do per point what the array code around them would do with one temporary array per operation (the
+same IEEE operations in the same order, so the same numbers), but point by point with early exits: a column
+is drawn sample by sample, and a ray's search stops at its first sample under the prism and a sample's test
+at its first pixel off the object. ``cam`` is (fx, fy, cx, cy) of :class:`~.camera.CameraIntrinsics`
+(:func:`camera_vector`)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+def camera_vector(intrinsics) -> np.ndarray:
+    """(fx, fy, cx, cy) of a :class:`~.camera.CameraIntrinsics`, as the loops take it."""
+    return np.array([intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy], dtype=np.float64)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _pixel(x, y, z, cam, width, height):
+    """The image pixel (u, v) a camera-frame point projects onto (``CameraIntrinsics.pixel_index``), (-1, -1)
+    when it lies behind the camera or outside the image."""
+    if not z > 0.0:
+        return -1, -1
+    u = np.rint(cam[2] + cam[0] * x / z)
+    v = np.rint(cam[3] + cam[1] * y / z)
+    if not (u >= 0.0 and u < width and v >= 0.0 and v < height):  # also false for NaN
+        return -1, -1
+    return int(u), int(v)
+
+
+@njit(cache=True, nogil=True)
+def draw_columns(foot, h, n, normal, include_point, cam, zbuf, u0, v0, in_image):
+    """Nearest depth of the solid columns over the pixels of ``zbuf`` (updated in place).
+
+    Column i has ``n[i]`` samples ``foot[i] + (k / n[i] h[i]) normal`` (``k / (n[i] - 1)`` with
+    ``include_point``), k = 0 .. n[i] - 1; a sample's pixel is ``CameraIntrinsics.pixel_index`` of it with
+    ``in_image`` (zbuf is then the image, ``u0 = v0 = 0``), else its rounded projection minus (u0, v0), kept
+    when it falls on zbuf."""
+    rows, cols = zbuf.shape
+    for i in range(foot.shape[0]):
+        ni = n[i]
+        den = ni - 1 if include_point else ni
+        for k in range(ni):
+            s = (k / den) * h[i]
+            x = foot[i, 0] + s * normal[0]
+            y = foot[i, 1] + s * normal[1]
+            z = foot[i, 2] + s * normal[2]
+            if in_image:
+                u, v = _pixel(x, y, z, cam, cols, rows)
+                if u < 0:
+                    continue
+            else:
+                u = int(np.rint(cam[2] + cam[0] * x / z)) - u0
+                v = int(np.rint(cam[3] + cam[1] * y / z)) - v0
+                if u < 0 or u >= cols or v < 0 or v >= rows:
+                    continue
+            if z < zbuf[v, u]:
+                zbuf[v, u] = z
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _on_object(x, y, z, cam, obj):
+    u, v = _pixel(x, y, z, cam, obj.shape[1], obj.shape[0])
+    return u >= 0 and obj[v, u]
+
+
+@njit(cache=True, nogil=True)
+def prism_heights(ray, ray_n, top_h, normal, offset, fractions, inner, cam, obj):
+    """Height of each ray's first sample under the object's prism (0 where none), searched from the top down.
+
+    Ray i is sampled at heights ``top_h[i] fractions[j]``; a sample's foot (where the ray is at that height,
+    dropped onto the plane) is under the prism when the vertical segment from it up ``top_h[i]`` projects onto
+    ``obj`` pixels at both ends and at the ``inner`` fractions of the way up."""
+    out = np.zeros(ray.shape[0])
+    for i in range(ray.shape[0]):
+        lx = top_h[i] * normal[0]
+        ly = top_h[i] * normal[1]
+        lz = top_h[i] * normal[2]
+        for j in range(fractions.shape[0]):
+            hk = top_h[i] * fractions[j]
+            t = (hk - offset) / ray_n[i]
+            fx = ray[i, 0] * t - hk * normal[0]
+            fy = ray[i, 1] * t - hk * normal[1]
+            fz = ray[i, 2] * t - hk * normal[2]
+            if not (_on_object(fx, fy, fz, cam, obj) and _on_object(fx + lx, fy + ly, fz + lz, cam, obj)):
+                continue
+            under = True
+            for f in inner:
+                if not _on_object(fx + f * lx, fy + f * ly, fz + f * lz, cam, obj):
+                    under = False
+                    break
+            if under:
+                out[i] = hk
+                break
+    return out
+
+
+@njit(cache=True, nogil=True)
+def under_prism(base, normal, heights, cam, sil):
+    """Whether each table point ``base`` (K, 3) (camera frame) is under the prism whose image is ``sil``: the
+    points ``base + h normal`` at every one of ``heights`` project onto ``sil`` pixels."""
+    out = np.zeros(base.shape[0], dtype=np.bool_)
+    for i in range(base.shape[0]):
+        ok = True
+        for h in heights:
+            if not _on_object(base[i, 0] + h * normal[0], base[i, 1] + h * normal[1], base[i, 2] + h * normal[2],
+                              cam, sil):
+                ok = False
+                break
+        out[i] = ok
+    return out
