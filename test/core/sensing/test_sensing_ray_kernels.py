@@ -6,21 +6,16 @@ search). The compiled loops must give the same numbers, bit for bit, on tilted s
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tilted_scene import Box, TiltedScene  # noqa: E402
-
-from gpis_grasp_ros.core.noise_model import SensorModel  # noqa: E402
-from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics  # noqa: E402
-from gpis_grasp_ros.core.sensing.clear_body import prism_footprint  # noqa: E402
-from gpis_grasp_ros.core.sensing.occlusion import column_zbuffer, see_through_pixels  # noqa: E402
-from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, prism_heights  # noqa: E402
-from gpis_grasp_ros.core.table_frame import TableFrame  # noqa: E402
+from gpis_grasp_ros.core.noise_model import SensorModel
+from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
+from gpis_grasp_ros.core.sensing.clear_body import prism_footprint
+from gpis_grasp_ros.core.sensing.occlusion import column_zbuffer, see_through_pixels
+from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, prism_heights
+from gpis_grasp_ros.core.table_frame import TableFrame
+from support.tilted_scene import Box, TiltedScene
 
 D435 = SensorModel.named('realsense_d400')
 BOXES = [Box(0.0, 0.0, 0.03, 0.02, 0.06), Box(0.07, 0.03, 0.015, 0.04, 0.03)]
