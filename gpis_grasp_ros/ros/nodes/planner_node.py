@@ -19,9 +19,9 @@ answer again when the middleware could not deliver it). The answer is built in t
 so per-thread scratch memory (the contact search's workspace) exists for ``workers`` threads only.
 
 **Asking again.** A service call with a non-zero seed is idempotent: the same request (method, N_g or
-K, λ, seed) from the same client (its request writer) on the same model joins the plan in progress or
-gets the answer already given (the last :data:`ANSWERS_KEPT`), so a caller that got no answer may send
-it again without the node planning twice.
+K, λ, seed) from the same client (its request writer) on the same model and parameters joins the plan in
+progress or gets the answer already given (the last :data:`ANSWERS_KEPT`), so a caller that got no answer
+may send it again without the node planning twice.
 
 **Bad input.** A GpisModel is checked against the node's limits before anything is allocated
 (:func:`gpis_grasp_ros.ros.validation.check_gpis_model`) and the rebuilt posterior must be finite;
@@ -221,7 +221,7 @@ class PlannerNode(GuardedNode):
         self.image_pub = self.create_publisher(Image, 'grasp/image', LATCHED_QOS)
         self._answers: collections.OrderedDict[tuple, Any] = collections.OrderedDict()  # key -> response
         self._keyed: dict[tuple, PlanJob] = {}  # key -> job in progress
-        self._answer_model: Any = None  # the model the kept answers were planned on
+        self._answer_basis: tuple = (None, None)  # the model and configuration the kept answers were planned with
         self._watchdog = threading.Thread(target=self._watch_deadlines, name='grasp-planning-deadlines', daemon=True)
         self._watchdog.start()
         requests = ReentrantCallbackGroup()
@@ -350,7 +350,7 @@ class PlannerNode(GuardedNode):
             replies, job.replies = job.replies, []
             if job.key is not None and self._keyed.get(job.key) is job:
                 del self._keyed[job.key]
-                if job.model is self._answer_model:
+                if job.model is self._answer_basis[0] and job.config is self._answer_basis[1]:
                     self._answers[job.key] = job.response
                     while len(self._answers) > ANSWERS_KEPT:
                         self._answers.popitem(last=False)
@@ -462,7 +462,8 @@ class PlannerNode(GuardedNode):
             answer = self._answers.get(key) if key is not None else None
             if answer is not None:  # asked again: the answer already given
                 self._answers.move_to_end(key)
-            elif key is not None and key in self._keyed:  # asked again while planning: join that job
+            elif key is not None and key in self._keyed and self._keyed[key].config is self.config:
+                # asked again while planning: join that job
                 self.enter_callback()
                 self._keyed[key].replies.append(reply)
                 return
@@ -477,7 +478,7 @@ class PlannerNode(GuardedNode):
         job.response, job.replies = response, [reply]
         self.enter_callback()
         with self._queue_cv:
-            if key is not None and job.model is self._answer_model:
+            if key is not None and job.model is self._answer_basis[0] and job.config is self._answer_basis[1]:
                 job.key = key
                 self._keyed[key] = job
         refused = self._submit(job)
@@ -491,12 +492,12 @@ class PlannerNode(GuardedNode):
             self.exit_callback()
 
     def _forget_answers_of_old_models(self) -> None:
-        """Kept answers belong to one model (caller holds the queue lock)."""
+        """Kept answers belong to one model and one configuration (caller holds the queue lock)."""
         with self._lock:
-            model = self._model
-        if model is not self._answer_model:
+            basis = (self._model, self.config)
+        if basis[0] is not self._answer_basis[0] or basis[1] is not self._answer_basis[1]:
             self._answers.clear()
-            self._answer_model = model
+            self._answer_basis = basis
 
     # ------------------------------------------------------------------ action
     def _on_goal(self, _goal: Any) -> GoalResponse:
