@@ -43,8 +43,6 @@ from gpis_grasp_ros.ros.params import ZERO_IS_NONE, Param, ParamTable
 
 #: Largest per-cell noise variance accepted on object/noise_map (m^2; a 1 m standard deviation).
 MAX_NOISE_VARIANCE = 1.0
-#: Largest object height (m above the table) taken from object/top; higher is not an object on the table.
-MAX_OBJECT_HEIGHT = 1.0
 
 
 @dataclass(frozen=True)
@@ -157,8 +155,11 @@ class GpisNode(GuardedNode):
         self._try_fit()
 
     def _on_top(self, msg: PointStamped) -> None:
-        if not np.isfinite(messages.point_stamped_to_numpy(msg)).all():
-            self.reject('ignoring object/top: non-finite point')
+        try:
+            validation.check_stamp(msg.header, 'PointStamped object/top')
+            validation.check_point(msg, 'PointStamped object/top.point', self.config.limits)
+        except ValueError as exc:
+            self.reject(f'ignoring object/top: {exc}')
             return
         with self._lock:
             self._top = msg
@@ -186,14 +187,18 @@ class GpisNode(GuardedNode):
 
     def object_height(self, header, geometry, tolerance_s: float) -> float:
         """Height (m) above the grid's table plane of the ``object/top`` point matching ``header`` (stamp within
-        ``tolerance_s``, same frame); 0 (unknown) without one."""
+        ``tolerance_s``, same frame); 0 (unknown) without one, or when the point is off the grid or higher than
+        :data:`~gpis_grasp_ros.ros.validation.MAX_OBJECT_HEIGHT` (logged)."""
         with self._lock:
             top = self._top
         if top is None or top.header.frame_id != header.frame_id or abs(
                 messages.stamp_to_ns(top.header.stamp) - messages.stamp_to_ns(header.stamp)) > tolerance_s * 1e9:
             return 0.0
-        height = float(geometry.from_sensor(messages.point_stamped_to_numpy(top))[1])
-        return height if np.isfinite(height) and 0.0 < height <= MAX_OBJECT_HEIGHT else 0.0
+        try:
+            return validation.object_height_of(messages.point_stamped_to_numpy(top), geometry)
+        except ValueError as exc:
+            self.reject(f'ignoring object/top: {exc}; object height unknown')
+            return 0.0
 
     def _on_noise(self, msg: FloatGrid) -> None:
         try:

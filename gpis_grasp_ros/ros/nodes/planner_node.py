@@ -138,7 +138,8 @@ PARAMETERS = ParamTable('planner_node', [
           low=-1.0, high=0.5),
     Param('object_height', float, 'height of the object above the table for the automatic grasp_height; 0 = the '
           'height measured by segmentation (GpisModel.object_height; if that is 0 too, unknown: the jaws close '
-          'half a jaw height above the table); > 0 overrides it', PlannerConfig, unit='m', low=0.0, high=1.0),
+          'half a jaw height above the table); > 0 overrides it', PlannerConfig, unit='m', low=0.0,
+          high=validation.MAX_OBJECT_HEIGHT),
     Param('max_queue', int, "requests (service calls + action goals) that may wait for a worker; more are "
           "answered 'queue full' at once", PlannerConfig, low=0, high=MAX_QUEUE_LIMIT),
     Param('workers', int, 'planning threads working on requests in parallel', PlannerConfig, low=1,
@@ -153,8 +154,10 @@ def build_config(v: dict[str, Any]) -> PlannerConfig:
     config = PARAMETERS.kwargs(v, PlannerConfig)
     if config['method'] not in planners.METHODS:
         raise ValueError(f"method={config['method']!r} is not one of {', '.join(planners.METHODS)}")
+    # a model narrower than a jaw pad cannot be planned on (validation.check_map_meta_data)
+    limits = validation.Limits(**PARAMETERS.kwargs(v, validation.Limits), min_extent=gripper.jaw_width)
     return PlannerConfig(planner=planners.PlannerParams(gripper=gripper, **PARAMETERS.kwargs(v, _PP)),
-                         limits=validation.Limits(**PARAMETERS.kwargs(v, validation.Limits)), **config)
+                         limits=limits, **config)
 
 
 def _object_height(config: PlannerConfig, model: Any) -> float:
@@ -264,9 +267,10 @@ class PlannerNode(GuardedNode):
     def _make_job(self, method_field: str, n_field: int, lam_field: float, seed_field: int) -> PlanJob | str:
         """Validate a request (service or goal) → a job, or the reason it is rejected."""
         config = self.config
-        method = (method_field or config.method).strip().lower()
+        method = method_field or config.method  # exactly one of the names; empty = the node's method
         if method not in planners.METHODS:
-            return f"unknown method '{method_field}'; valid: {', '.join(planners.METHODS)}"
+            return (f"unknown method '{method_field}'; valid: {', '.join(planners.METHODS)} (exactly; empty = the "
+                    f"node's method '{config.method}')")
         sampling = method in SAMPLING_METHODS
         default_n = config.planner.n_grasp_samples if sampling else config.planner.n_initial_grasps
         limit = MAX_GRASP_SAMPLES if sampling else MAX_INITIAL_GRASPS
