@@ -19,9 +19,10 @@ answer again when the middleware could not deliver it). The answer is built in t
 so per-thread scratch memory (the contact search's workspace) exists for ``workers`` threads only.
 
 **Asking again.** A service call with a non-zero seed is idempotent: the same request (method, N_g or
-K, λ, seed) from the same client (its request writer) on the same model and parameters joins the plan in
-progress or gets the answer already given (the last :data:`ANSWERS_KEPT`), so a caller that got no answer
-may send it again without the node planning twice.
+K, λ, seed) on the same model and parameters joins the plan in progress or gets the answer already given
+(the last :data:`ANSWERS_KEPT`), so a caller that got no answer may send it again without the node
+planning twice. (Planning is deterministic given the seed, so another caller sending the same seeded
+request gets the grasp it would have got; rclpy does not tell a service who called.)
 
 **Bad input.** A GpisModel is checked against the node's limits before anything is allocated
 (:func:`gpis_grasp_ros.ros.validation.check_gpis_model`) and the rebuilt posterior must be finite;
@@ -449,7 +450,7 @@ class PlannerNode(GuardedNode):
             response.message = 'planning did not finish'
         return response
 
-    def _on_plan(self, request: GraspPlan.Request, reply: Reply, caller: tuple) -> None:
+    def _on_plan(self, request: GraspPlan.Request, reply: Reply) -> None:
         """A service call: answered at once (refused, asked again) or later by the planning thread."""
         response = reply.response
         response.success = False
@@ -459,7 +460,7 @@ class PlannerNode(GuardedNode):
             return
         key = None
         if request.seed:
-            key = (caller, str(request.method), int(request.num_initial_grasps),
+            key = (str(request.method), int(request.num_initial_grasps),
                    float(request.uncertainty_penalty), int(request.seed))
         with self._queue_cv:
             self._forget_answers_of_old_models()

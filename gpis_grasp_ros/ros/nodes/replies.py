@@ -101,15 +101,14 @@ class Reply:
 
 
 class DeferredService:
-    """A service whose ``handler(request, reply, caller)`` answers through ``reply.send()``, now or later.
+    """A service whose ``handler(request, reply)`` answers through ``reply.send()``, now or later.
 
-    ``caller`` identifies the client (its request writer's GUID, a tuple). The handler runs in the
-    executor like any service callback and must not block; an exception it raises is answered
-    ``success=false`` with the reason. Counters: ``answers_sent``, ``send_timeouts`` (attempts the
-    middleware refused), ``answers_lost`` (answers not delivered after every retry).
+    The handler runs in the executor like any service callback and must not block; an exception it raises
+    is answered ``success=false`` with the reason. Counters: ``answers_sent``, ``send_timeouts`` (attempts
+    the middleware refused), ``answers_lost`` (answers not delivered after every retry).
     """
 
-    def __init__(self, node: Any, srv_type: Any, name: str, handler: Callable[[Any, Reply, tuple], None],
+    def __init__(self, node: Any, srv_type: Any, name: str, handler: Callable[[Any, Reply], None],
                  qos_profile: Any, callback_group: Any = None) -> None:
         self._node = node
         self._name = name
@@ -145,9 +144,8 @@ class DeferredService:
         if request is None:  # not taken by _on_request: answer as rclpy would
             reply.send()
             return
-        caller = tuple(getattr(getattr(header, 'request_id', header), 'writer_guid', ()))
         try:
-            self._handler(request, reply, caller)
+            self._handler(request, reply)
         except Exception as exc:  # noqa: BLE001 - callers always get an answer
             self._node.get_logger().error(f'{self._name}: unexpected {type(exc).__name__}: {exc}')
             if hasattr(response, 'success'):
