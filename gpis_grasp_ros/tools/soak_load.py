@@ -48,6 +48,14 @@ def rss_mb(pid: int) -> float:
     return int(m.group(1)) / 1024 if m else float('nan')
 
 
+def threads(pid: int) -> int:
+    """Threads of ``pid``."""
+    try:
+        return int(re.search(r'Threads:\s+(\d+)', Path(f'/proc/{pid}/status').read_text()).group(1))
+    except (OSError, AttributeError):
+        return -1
+
+
 def slope_per_1000(xs: list[float], ys: list[float]) -> float:
     """Least-squares slope of ``ys`` over ``xs``, per 1000 units of x."""
     if len(xs) < 3:
@@ -284,7 +292,7 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
     soak.figures['models'] = {
         'published': count, 'taken_by_planner': received, 'plans': plans, 'plans_ok': plans_ok,
         'rss_first_mb': ys[0] if ys else float('nan'), 'rss_last_mb': ys[-1] if ys else float('nan'),
-        'rss_max_mb': max(ys) if ys else float('nan'),
+        'rss_max_mb': max(ys) if ys else float('nan'), 'threads_at_end': threads(pid),
         'rss_slope_after_warmup_mb_per_1000_models': slope_per_1000(xs[half:], ys[half:]),
         'wall_clock_s': time.monotonic() - started,
     }

@@ -83,6 +83,8 @@ MAX_GRASP_SAMPLES = 100000
 #: Upper bound of the max_queue parameter (a waiting action goal holds an executor thread; a service call none).
 MAX_QUEUE_LIMIT = 1024
 MAX_WORKERS = 8
+#: Executor threads for action goals waiting for their plan (see PlannerNode.executor_threads).
+ACTION_GOAL_THREADS = 16
 #: Answers to seeded service calls kept for callers that ask again (cleared when a new model arrives).
 ANSWERS_KEPT = 256
 #: Range of the uncertainty_penalty parameter; requests outside it (other than negative = default) are rejected.
@@ -197,8 +199,11 @@ class PlanJob:
 class PlannerNode(GuardedNode):
     """Thin ROS wrapper around :func:`gpis_grasp_ros.core.planners.plan` with a bounded request queue."""
 
-    #: one thread per waiting caller and per worker
-    executor_threads = MAX_QUEUE_LIMIT + MAX_WORKERS + 4
+    #: Bounded: every thread the executor ever started keeps its own scratch memory (malloc arena, numpy
+    #: temporaries), so RSS grows with the thread count. Service calls hold none while they wait; an action
+    #: goal holds one until answered, so up to ACTION_GOAL_THREADS goals wait at once (more are accepted and
+    #: taken as threads free up). The model callback, parameters and services share the rest.
+    executor_threads = ACTION_GOAL_THREADS + 4
 
     def __init__(self, **kwargs) -> None:
         super().__init__('planner_node', **kwargs)
