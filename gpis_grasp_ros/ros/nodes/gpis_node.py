@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import OccupancyGrid
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import Image
 
 from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
@@ -121,11 +122,15 @@ class GpisNode(GuardedNode):
         self._top: PointStamped | None = None
         self._published: tuple[gpis.GpisPosterior, Any, float] | None = None  # last model, its header, its height
         self._lock = threading.Lock()
-        self.create_subscription(PointStamped, 'object/top', guarded(self, 'object/top', self._on_top), LATCHED_QOS)
+        # the inputs one at a time, apart from the parameter services (answered while a fit runs)
+        inputs = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(PointStamped, 'object/top', guarded(self, 'object/top', self._on_top), LATCHED_QOS,
+                                 callback_group=inputs)
         self.create_subscription(OccupancyGrid, 'object/occupancy',
-                                 guarded(self, 'object/occupancy', self._on_occupancy), LATCHED_QOS)
+                                 guarded(self, 'object/occupancy', self._on_occupancy), LATCHED_QOS,
+                                 callback_group=inputs)
         self.create_subscription(FloatGrid, 'object/noise_map', guarded(self, 'object/noise_map', self._on_noise),
-                                 LATCHED_QOS)
+                                 LATCHED_QOS, callback_group=inputs)
         self.model_pub = self.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
         self.mean_pub = self.create_publisher(FloatGrid, 'gpis/mean', LATCHED_QOS)
         self.var_pub = self.create_publisher(FloatGrid, 'gpis/variance', LATCHED_QOS)

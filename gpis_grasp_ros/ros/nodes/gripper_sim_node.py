@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 
 from gpis_grasp_interfaces.msg import FloatGrid
 from gpis_grasp_interfaces.srv import ExecuteGrasp
@@ -64,12 +65,14 @@ class GripperSimNode(GuardedNode):
         self._sdf = None
         self._geometry = None
         self._com = None
+        work = MutuallyExclusiveCallbackGroup()  # apart from the parameter services (answered during trials)
         self.create_subscription(FloatGrid, 'ground_truth/sdf', guarded(self, 'ground_truth/sdf', self._on_sdf),
-                                 LATCHED_QOS)
+                                 LATCHED_QOS, callback_group=work)
         self.create_subscription(PointStamped, 'ground_truth/center_of_mass',
-                                 guarded(self, 'ground_truth/center_of_mass', self._on_com), LATCHED_QOS)
+                                 guarded(self, 'ground_truth/center_of_mass', self._on_com), LATCHED_QOS,
+                                 callback_group=work)
         self.create_service(ExecuteGrasp, 'execute_grasp', guarded_service(self, 'execute_grasp', self._on_execute),
-                            qos_profile=SERVICE_QOS)
+                            qos_profile=SERVICE_QOS, callback_group=work)
         log_startup(self, ['ground_truth/sdf', 'ground_truth/center_of_mass'], [],
                     ['jaw_width', 'max_opening', 'friction_coefficient', 'position_noise'],
                     services=['execute_grasp'])
