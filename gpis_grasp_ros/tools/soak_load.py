@@ -206,6 +206,7 @@ def matrix(soak: Any, model: Any, retry: bool, rounds=MATRIX_ROUNDS, workers_val
     pub.publish(model)
     cells, totals = [], dict.fromkeys(('sent', 'answered', 'planned', 'refused', 'no_reason', 'lost'), 0)
     latencies: list[float] = []
+    reasons: dict[str, int] = {}
     started = time.monotonic()
     seed = 1000
     for workers in workers_values:
@@ -236,17 +237,25 @@ def matrix(soak: Any, model: Any, retry: bool, rounds=MATRIX_ROUNDS, workers_val
                     for k in cell:
                         cell[k] += int(res.get(k, 0))
                     latencies += res.get('latencies', [])
+                    for reason, n in res.get('reasons', {}).items():
+                        reasons[reason] = reasons.get(reason, 0) + int(n)
                 cells.append({'workers': workers, 'max_queue': queue, 'clients': n_clients, 'mode': mode, **cell})
                 for k in totals:
                     totals[k] += cell[k]
     soak.node.destroy_publisher(pub)
+    from gpis_grasp_ros.tools.soak import NODES, start_node
+    soak.procs['planner_node'].terminate()
+    soak.procs['planner_node'].wait(timeout=20)
+    start_node(soak, 'planner_node', NODES['planner_node'], suffix='_after_matrix')  # the soak's settings again
     soak.figures['matrix'] = {
         'cells': len(cells), 'client_api': 'ask again (client.py)' if retry else 'plain rclpy call_async',
         **{f'requests_{k}': v for k, v in totals.items()},
         'answered_pct': 100.0 * totals['answered'] / max(totals['sent'], 1),
         'latency_p50_s': _pct(latencies, 50), 'latency_p99_s': _pct(latencies, 99),
+        'refusal_reasons': reasons,
         'cells_with_losses': [c for c in cells if c['lost']],
-        'send_timeouts_logged': soak.log_count(r'could not be delivered'),
+        'answers_sent_again': soak.log_count(r'sending it again'),
+        'answers_undeliverable': soak.log_count(r'could not be delivered'),
         'wall_clock_s': time.monotonic() - started,
     }
     soak.figures['matrix_cells'] = {f"w{c['workers']} q{c['max_queue']} {c['clients']}x{c['mode']}":

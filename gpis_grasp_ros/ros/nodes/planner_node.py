@@ -64,6 +64,7 @@ from gpis_grasp_ros.ros.nodes.common import (
     guarded,
     log_startup,
     run_node,
+    trim_heap,
 )
 from gpis_grasp_ros.ros.nodes.replies import DeferredService, Reply
 from gpis_grasp_ros.ros.nodes.shared_params import (
@@ -85,6 +86,8 @@ MAX_QUEUE_LIMIT = 1024
 MAX_WORKERS = 8
 #: Executor threads for action goals waiting for their plan (see PlannerNode.executor_threads).
 ACTION_GOAL_THREADS = 16
+#: Seconds between heap trims while new models arrive (common.trim_heap).
+TRIM_PERIOD = 2.0
 #: Answers to seeded service calls kept for callers that ask again (cleared when a new model arrives).
 ANSWERS_KEPT = 256
 #: Range of the uncertainty_penalty parameter; requests outside it (other than negative = default) are rejected.
@@ -324,11 +327,17 @@ class PlannerNode(GuardedNode):
     def _watch_deadlines(self) -> None:
         """Answer a running job at its deadline (or at shutdown) even if the planner has not reached its
         next checkpoint yet; the worker stops there and then takes the next request."""
+        trimmed_for, next_trim = None, 0.0
         while True:
             with self._queue_cv:
                 self._queue_cv.wait(0.02)
                 running = list(self._running)
                 stopping = self.shutting_down.is_set()
+            with self._lock:
+                model = self._model
+            if model is not trimmed_for and time.monotonic() > next_trim:  # models replaced: free their pages
+                trim_heap()
+                trimmed_for, next_trim = model, time.monotonic() + TRIM_PERIOD
             now = time.monotonic()
             for job in running:
                 if stopping:

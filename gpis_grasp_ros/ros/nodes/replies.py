@@ -171,6 +171,8 @@ class DeferredService:
             self._node.get_logger().warning(f'{self._name}: an answer could not be delivered after {attempt + 1} '
                                             'attempts (the caller may ask again)')
             return
+        self._node.get_logger().info(f'{self._name}: the middleware could not deliver an answer (the caller not '
+                                     f'matched yet); sending it again in {RESEND_DELAYS[attempt]:g} s')
         with self._retry_cv:
             self._retries.append((time.monotonic() + RESEND_DELAYS[attempt], attempt + 1, reply, header))
             self._retry_cv.notify()
