@@ -12,13 +12,18 @@
 ``plan`` uses the ``plan_grasp`` action by default (feedback, ``cancel()`` from another thread or from the
 feedback callback) or the ``plan_grasp`` service (``use_action=False``). Service clients keep the deep
 request history :data:`~gpis_grasp_ros.ros.nodes.common.SERVICE_QOS` the nodes' services use, so a burst of
-calls is not dropped by DDS. Every method returns plain dataclasses; nothing raises on a refused or failed
+calls is not dropped by DDS (the action's goal, result and cancel services too). An answer the
+middleware lost is asked for again: a service call is re-sent after :data:`ASK_AGAIN` s (with the same
+seed, chosen here when the caller gave 0, so planner_node joins the plan in progress or answers from
+its kept answers instead of planning twice), and an action result is requested again likewise. Every
+method returns plain dataclasses; nothing raises on a refused or failed
 request (``success`` is false and ``message`` says why). No tf2: :meth:`to_frame` applies a caller-given
 ``TransformStamped`` with numpy quaternion maths.
 """
 
 from __future__ import annotations
 
+import random
 import threading
 import time
 from collections.abc import Callable
@@ -43,6 +48,8 @@ _RESULT_FIELDS = ('success', 'message', 'method', 'jaw1', 'jaw2', 'grasp_pose', 
                   'jaw_separation', 'grasp_height', 'probability_force_closure',
                   'probability_force_closure_std_error', 'ferrari_canny_on_mean', 'objective', 'planning_time',
                   'iterations')
+#: Seconds without an answer after which a request is sent again (then every last value).
+ASK_AGAIN = (2.0, 4.0, 8.0, 16.0)
 _STATUS = {GoalStatus.STATUS_SUCCEEDED: 'succeeded', GoalStatus.STATUS_ABORTED: 'aborted',
            GoalStatus.STATUS_CANCELED: 'canceled'}
 
@@ -171,7 +178,9 @@ class GraspPlannerClient(Node):
                                                 callback_group=group)
         self._execute_service = self.create_client(ExecuteGrasp, 'execute_grasp', qos_profile=SERVICE_QOS,
                                                    callback_group=group)
-        self._plan_action = ActionClient(self, PlanGrasp, 'plan_grasp', callback_group=group)
+        self._plan_action = ActionClient(self, PlanGrasp, 'plan_grasp', callback_group=group,
+                                         goal_service_qos_profile=SERVICE_QOS, result_service_qos_profile=SERVICE_QOS,
+                                         cancel_service_qos_profile=SERVICE_QOS)
         self._model_topic = 'gpis/model'
         self._model_received = threading.Event()
         self._model: GpisModel | None = None
@@ -239,11 +248,13 @@ class GraspPlannerClient(Node):
         end = None if timeout is None else time.monotonic() + timeout
         if not self._plan_service.wait_for_service(timeout_sec=_remaining(end, 10.0)):
             return PlanResult(message='plan_grasp service not available', status='refused')
-        future = self._plan_service.call_async(request)
-        if not _wait(future, _remaining(end, None)):
-            self._plan_service.remove_pending_request(future)
+        if not request.seed:  # a seed of our own: asking again is then the same request
+            request.seed = random.SystemRandom().randrange(1, 2 ** 32)
+        answer = _ask(lambda: self._plan_service.call_async(request), self._plan_service.remove_pending_request,
+                      _remaining(end, None))
+        if answer is None:
             return PlanResult(message=f'no answer from plan_grasp within {timeout} s', status='timeout')
-        return PlanResult.from_message(future.result(), 'answered')
+        return PlanResult.from_message(answer, 'answered')
 
     def _plan_by_action(self, goal: PlanGrasp.Goal, timeout: float | None,
                         feedback_callback: Callable[[Any], None] | None) -> PlanResult:
@@ -260,13 +271,12 @@ class GraspPlannerClient(Node):
         with self._goal_lock:
             self._goal_handle = handle
         try:
-            result = handle.get_result_async()
-            if not _wait(result, _remaining(end, None)):
+            answer = _ask(handle.get_result_async, lambda _f: None, _remaining(end, None))
+            if answer is None:
                 self._cancel(handle, 5.0)
-                _wait(result, 5.0)  # the node answers a cancelled goal at its next checkpoint
+                _ask(handle.get_result_async, lambda _f: None, 5.0)  # answered at the next checkpoint
                 return PlanResult(message=f'planning did not finish within {timeout} s; goal cancelled',
                                   status='timeout')
-            answer = result.result()
             return PlanResult.from_message(answer.result, _STATUS.get(answer.status, f'status {answer.status}'))
         finally:
             with self._goal_lock:
@@ -331,6 +341,29 @@ def _remaining(end: float | None, cap: float | None) -> float | None:
         return cap
     left = max(0.0, end - time.monotonic())
     return left if cap is None else min(left, cap)
+
+
+def _ask(send: Callable[[], Any], forget: Callable[[Any], Any], timeout: float | None) -> Any:
+    """``send()`` a request (→ future), again after each :data:`ASK_AGAIN` delay while no answer came; the first
+    answer (None when ``timeout`` s pass first). ``forget(future)`` drops the requests still pending."""
+    end = None if timeout is None else time.monotonic() + timeout
+    answered = threading.Event()
+    futures: list[Any] = []
+    try:
+        for attempt in range(10 ** 6):
+            future = send()
+            futures.append(future)
+            future.add_done_callback(lambda _f: answered.set())
+            delay = ASK_AGAIN[min(attempt, len(ASK_AGAIN) - 1)]
+            if answered.wait(_remaining(end, delay)):
+                return next(f.result() for f in futures if f.done())
+            if end is not None and time.monotonic() >= end:
+                return None
+        return None
+    finally:
+        for future in futures:
+            if not future.done():
+                forget(future)
 
 
 def _wait(future: Any, timeout: float | None) -> bool:

@@ -24,7 +24,10 @@
   oldest not-yet-acknowledged message once ``depth`` newer ones are queued (the shipped bags record
   depth 5 for 10 camera frames sent in 0.33 s: one slow repair of a lost fragment lost frames), so
   ``reliable=True`` also raises each topic's history depth to its message count in the bag
-  (at most :data:`MAX_RELIABLE_DEPTH`).
+  (at most :data:`MAX_RELIABLE_DEPTH`). A best-effort subscriber never acknowledges, so a
+  reliable topic one subscribes to cannot be paced by acknowledgements (each message would wait
+  ``ack_timeout``): with ``rate=0`` the player says so before the first message and publishes that
+  topic at its recorded timing instead (bursts stay bursts; the other topics go as fast as acknowledged).
 * Header stamps are left as recorded (2015 for the shipped bags).
 
 :class:`BagPlayer` is importable for tests and demos: give it a node (it adds publishers) or a
@@ -198,6 +201,8 @@ class BagPlayer:
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        #: reliable topics with a best-effort subscriber: paced by the recorded timing when rate == 0
+        self.time_paced: set[str] = set()
 
     # ------------------------------------------------------------------ control
     def play_once(self, blocking: bool = True) -> None:
@@ -246,9 +251,37 @@ class BagPlayer:
             self._thread = threading.Thread(target=self._run, args=(once,), name='bag_player', daemon=True)
             self._thread.start()
 
+    def best_effort_subscribers(self) -> dict[str, list[str]]:
+        """Reliable-published topics → the nodes subscribing to them best effort (they never acknowledge)."""
+        out: dict[str, list[str]] = {}
+        for topic, pub in self.publishers.items():
+            if self.qos[topic].reliability != ReliabilityPolicy.RELIABLE:
+                continue
+            names = [f'{i.node_namespace.rstrip("/")}/{i.node_name}'
+                     for i in self.node.get_subscriptions_info_by_topic(pub.topic_name)
+                     if i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]
+            if names:
+                out[topic] = names
+        return out
+
+    def _choose_pacing(self) -> None:
+        """With rate 0: topics that acknowledgements cannot pace go at their recorded timing (said once)."""
+        self.time_paced = set()
+        if self.rate != 0:
+            return
+        best_effort = self.best_effort_subscribers()
+        for topic, names in best_effort.items():
+            self.node.get_logger().warning(
+                f"{topic}: subscribed best effort by {', '.join(names)}; a best-effort subscriber never "
+                'acknowledges, so this topic cannot be played as fast as acknowledged: it is played at its '
+                'recorded timing (run the subscriber with reliable input, e.g. input_reliability:=reliable, '
+                'for full speed)')
+        self.time_paced = set(best_effort)
+
     def _run(self, once: bool) -> None:
         try:
             self._wait_for_matching()
+            self._choose_pacing()
             while not self._stop.is_set():
                 self._play_pass()
                 self.passes += 1
@@ -321,6 +354,7 @@ class BagPlayer:
         start_wall: float | None = None
         start_bag = 0
         ack = Duration(seconds=self.ack_timeout)
+        last_t_ns: int | None = None
         for record in bagio.iter_bag(self.bag_path, self.topics):
             if self._stop.is_set():
                 return
@@ -331,6 +365,11 @@ class BagPlayer:
                 delay = due - time.monotonic()
                 if delay > 0 and self._stop.wait(delay):
                     return
+            elif record.topic in self.time_paced and last_t_ns is not None:
+                gap = min(max((record.t_ns - last_t_ns) * 1e-9, 0.0), 1.0)  # the recorded gap, at most 1 s
+                if gap > 0 and self._stop.wait(gap):
+                    return
+            last_t_ns = record.t_ns
             pub = self.publishers[record.topic]
             if self.clock_pub is not None:
                 sec, nsec = divmod(int(record.t_ns), 1_000_000_000)
@@ -339,7 +378,8 @@ class BagPlayer:
                 self.clock_pub.publish(clock_msg)
             pub.publish(record.raw)
             self.counts[record.topic] += 1
-            if self.rate == 0 and self.qos[record.topic].reliability == ReliabilityPolicy.RELIABLE:
+            if (self.rate == 0 and self.qos[record.topic].reliability == ReliabilityPolicy.RELIABLE
+                    and record.topic not in self.time_paced):
                 if not pub.wait_for_all_acked(ack):
                     self.node.get_logger().warning(f'{record.topic}: not acknowledged within {self.ack_timeout} s')
         if self.rate > 0 and not self._stop.is_set():

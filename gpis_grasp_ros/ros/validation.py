@@ -8,6 +8,12 @@ steps, a few scalars) are read here, plus a finiteness scan of already-received 
 (no copies beyond one boolean mask of the message's own size).
 
 Limits are node parameters (see each node); the defaults are in :class:`Limits`.
+
+**What the planner and the gripper can use.** A grid (occupancy, noise map, GPIS model, ground truth)
+has at least :data:`MIN_GRID_SIDE` cells per side and an aspect of at most :data:`MAX_GRID_ASPECT`; a
+GPIS mean must cross zero (an object surface with free space around it); an object is at most
+:data:`MAX_OBJECT_HEIGHT` m high (one limit for segmentation, gpis_node and planner_node); header
+stamps are non-negative. See :func:`check_map_meta_data` for the reasons.
 """
 
 from __future__ import annotations
@@ -18,7 +24,21 @@ from typing import Any
 
 import numpy as np
 
+from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.data import messages
+
+#: Fewest cells per grid side. The contact search interpolates bilinearly (2 x 2 nodes at least) and the
+#: jaws start in free space on either side of the object, so a grid needs object cells with free cells
+#: around them on both sides: 1 free + 2 object + 1 free = 4 (segmentation_node's smallest grid_size).
+MIN_GRID_SIDE = 4
+#: Largest ratio of the longer to the shorter grid side. The heuristic grasps approach along the surface
+#: normal or toward the centre of mass, in any direction; across the short side of a long strip the jaws
+#: (w_g apart) would start on the SDF the contact search extrapolates beyond the grid, not on the GPIS.
+#: segmentation_node makes square grids; 4:1 leaves room for other producers.
+MAX_GRID_ASPECT = 4.0
+#: Highest object accepted (m above the table), everywhere: segmentation's evidence cap
+#: (``SensingParams.max_object_height_m``: higher is an arm or a person, not an object on the table).
+MAX_OBJECT_HEIGHT = float(SensingParams.max_object_height_m)
 
 
 @dataclass(frozen=True)
@@ -32,6 +52,7 @@ class Limits:
     max_distance: float = 100.0             # m: |positions| in the sensor frame (grid origins, points)
     min_focal_px: float = 1.0
     max_focal_px: float = 1e5
+    min_extent: float = 0.0                 # m: shorter grid side at least this long (the planner: its jaw width)
 
 
 def _finite(name: str, value: float) -> float:
@@ -48,13 +69,23 @@ def _count(name: str, value: int, low: int, high: int) -> int:
     return v
 
 
+def check_stamp(header: Any, what: str) -> None:
+    """A ``std_msgs/Header`` stamp is a time since the epoch: sec >= 0 and nanosec < 10^9."""
+    stamp = header.stamp
+    sec, nanosec = int(stamp.sec), int(stamp.nanosec)
+    if sec < 0 or not (0 <= nanosec < 1_000_000_000):
+        raise ValueError(f'{what}.header.stamp ({sec} s, {nanosec} ns) is not a time since the epoch '
+                         '(sec must be >= 0, nanosec < 10^9)')
+
+
 def _data_size(data: Any) -> int:
     """Length of a primitive sequence field without copying it."""
     return len(data)
 
 
 def check_image(msg: Any, limits: Limits, what: str = 'Image') -> None:
-    """Size, step and data length of a ``sensor_msgs/Image`` (before :func:`messages.image_to_numpy`)."""
+    """Stamp, size, step and data length of a ``sensor_msgs/Image`` (before :func:`messages.image_to_numpy`)."""
+    check_stamp(msg.header, what)
     h = _count(f'{what}.height', msg.height, 1, limits.max_image_pixels)
     w = _count(f'{what}.width', msg.width, 1, limits.max_image_pixels)
     if h * w > limits.max_image_pixels:
@@ -73,7 +104,8 @@ def check_image(msg: Any, limits: Limits, what: str = 'Image') -> None:
 
 
 def check_pointcloud(msg: Any, limits: Limits) -> None:
-    """Size, steps and data length of a ``sensor_msgs/PointCloud2`` (before parsing it)."""
+    """Stamp, size, steps and data length of a ``sensor_msgs/PointCloud2`` (before parsing it)."""
+    check_stamp(msg.header, 'PointCloud2')
     h = _count('PointCloud2.height', msg.height, 1, limits.max_image_pixels)
     w = _count('PointCloud2.width', msg.width, 1, limits.max_image_pixels)
     if h * w > limits.max_image_pixels:
@@ -108,15 +140,26 @@ def check_camera_info(msg: Any, limits: Limits) -> tuple[float, float, float, fl
 
 
 def check_map_meta_data(info: Any, limits: Limits, what: str) -> None:
-    """``nav_msgs/MapMetaData`` of a grid: size, resolution, finite pose and a unit quaternion."""
+    """``nav_msgs/MapMetaData`` of a grid: size (at least :data:`MIN_GRID_SIDE` cells a side, aspect at most
+    :data:`MAX_GRID_ASPECT`, the shorter side at least ``limits.min_extent`` m), resolution, finite pose and a
+    unit quaternion."""
     w = _count(f'{what}.info.width', info.width, 1, limits.max_grid_cells)
     h = _count(f'{what}.info.height', info.height, 1, limits.max_grid_cells)
     if w * h > limits.max_grid_cells:
         raise ValueError(f'{what} has {w} x {h} = {w * h} cells, more than max_grid_cells={limits.max_grid_cells}')
+    if min(w, h) < MIN_GRID_SIDE:
+        raise ValueError(f'{what} is {w} x {h} cells: the contact search and the jaws need at least '
+                         f'{MIN_GRID_SIDE} x {MIN_GRID_SIDE} (free space on both sides of the object)')
+    if max(w, h) > MAX_GRID_ASPECT * min(w, h):
+        raise ValueError(f'{what} is {w} x {h} cells: sides more unequal than {MAX_GRID_ASPECT:g}:1 leave the jaws '
+                         'no room across the short side')
     res = float(info.resolution)
     if not (math.isfinite(res) and limits.min_resolution <= res <= limits.max_resolution):
         raise ValueError(f'{what}.info.resolution={res} m outside [{limits.min_resolution:g}, '
                          f'{limits.max_resolution:g}] m')
+    if min(w, h) * res < limits.min_extent:
+        raise ValueError(f'{what} is {min(w, h) * res * 1000:.3g} mm across its shorter side, narrower than the '
+                         f'jaw width {limits.min_extent * 1000:.3g} mm')
     p = info.origin.position
     for axis in ('x', 'y', 'z'):
         v = _finite(f'{what}.info.origin.position.{axis}', getattr(p, axis))
@@ -143,7 +186,8 @@ def _finite_array(name: str, data: Any, allow_nan: bool = False, low: float = -n
 
 
 def check_occupancy_grid(msg: Any, limits: Limits) -> None:
-    """OccupancyGrid header, data length and values in [-1, 100]."""
+    """OccupancyGrid stamp, grid, data length and values in [-1, 100]."""
+    check_stamp(msg.header, 'OccupancyGrid')
     check_map_meta_data(msg.info, limits, 'OccupancyGrid')
     n = int(msg.info.width) * int(msg.info.height)
     if _data_size(msg.data) != n:
@@ -154,7 +198,8 @@ def check_occupancy_grid(msg: Any, limits: Limits) -> None:
 
 
 def check_float_grid(msg: Any, limits: Limits, what: str, allow_nan: bool, low: float, high: float) -> None:
-    """FloatGrid header, data length and values (NaN allowed only where ``allow_nan``)."""
+    """FloatGrid stamp, grid, data length and values (NaN allowed only where ``allow_nan``)."""
+    check_stamp(msg.header, what)
     check_map_meta_data(msg.info, limits, what)
     n = int(msg.info.width) * int(msg.info.height)
     if _data_size(msg.data) != n:
@@ -168,8 +213,10 @@ def check_gpis_model(msg: Any, limits: Limits) -> None:
     """A ``GpisModel``: grid, hyperparameters, training data near the grid, finite values.
 
     Training points must lie within one grid extent of the grid, SDF targets within a few grid
-    diagonals, variances/jitter non-negative and bounded, the centre of mass finite.
+    diagonals, variances/jitter non-negative and bounded, the centre of mass finite and on the grid,
+    the object height in [0, :data:`MAX_OBJECT_HEIGHT`] m.
     """
+    check_stamp(msg.header, 'GpisModel')
     check_map_meta_data(msg.info, limits, 'GpisModel')
     w, h = int(msg.info.width), int(msg.info.height)
     res = float(msg.resolution) if float(msg.resolution) != 0.0 else float(msg.info.resolution)
@@ -225,14 +272,45 @@ def check_gpis_model(msg: Any, limits: Limits) -> None:
     for axis in ('x', 'y', 'z'):
         _finite(f'GpisModel.center_of_mass.{axis}', getattr(com, axis))
     _finite('GpisModel.center_of_mass_std', msg.center_of_mass_std)
+    height = _finite('GpisModel.object_height', getattr(msg, 'object_height', 0.0))
+    if not (0.0 <= height <= MAX_OBJECT_HEIGHT):
+        raise ValueError(f'GpisModel.object_height={height} m outside [0, {MAX_OBJECT_HEIGHT:g}] m')
+
+
+def check_on_grid(xy: np.ndarray, geometry: Any, what: str, margin_cells: float = 1.0) -> None:
+    """Table-frame ``xy`` (m) lies on the grid of ``geometry`` (within ``margin_cells`` of its border)."""
+    lo = np.array([geometry.origin_x, geometry.origin_y]) - margin_cells * geometry.resolution
+    hi = lo + np.asarray(geometry.size_m, dtype=np.float64) + 2 * margin_cells * geometry.resolution
+    xy = np.asarray(xy, dtype=np.float64)[:2]
+    if not (np.isfinite(xy).all() and np.all(xy >= lo) and np.all(xy <= hi)):
+        raise ValueError(f'{what} is at ({xy[0]:.3g}, {xy[1]:.3g}) m in the table frame, off the grid '
+                         f'[{lo[0]:.3g}, {hi[0]:.3g}] x [{lo[1]:.3g}, {hi[1]:.3g}] m')
+
+
+def object_height_of(top_sensor: np.ndarray, geometry: Any) -> float:
+    """Height (m) above the table of an ``object/top`` point (camera frame), checked: on the grid and in
+    (0, :data:`MAX_OBJECT_HEIGHT`]; ValueError says why not (0 = on the table plane: unknown)."""
+    xy, height = geometry.from_sensor(np.asarray(top_sensor, dtype=np.float64))
+    check_on_grid(xy, geometry, 'object/top')
+    height = float(height)
+    if not (math.isfinite(height) and height <= MAX_OBJECT_HEIGHT):
+        raise ValueError(f'object/top is {height * 1000:.0f} mm above the table, more than the highest object '
+                         f'{MAX_OBJECT_HEIGHT * 1000:.0f} mm')
+    return max(height, 0.0)
 
 
 def check_posterior(posterior: Any) -> None:
-    """The rebuilt posterior has finite mean, variance and gradient (never plan on NaN)."""
+    """The posterior has finite mean, variance and gradient (never plan on NaN), and its mean crosses zero:
+    an object surface (mean < 0 inside) with free space (mean > 0) for the jaws to start in."""
     for name in ('mean', 'variance', 'gradient'):
         arr = np.asarray(getattr(posterior, name))
         if not np.isfinite(arr).all():
             raise ValueError(f'GpisModel gives a non-finite posterior {name} (ill-conditioned kernel?)')
+    mean = np.asarray(posterior.mean)
+    if not (mean < 0).any():
+        raise ValueError('the GPIS mean is >= 0 on every cell: no object to grasp')
+    if not (mean > 0).any():
+        raise ValueError('the GPIS mean is <= 0 on every cell: no free space for the jaws')
 
 
 def check_point(msg: Any, what: str, limits: Limits) -> np.ndarray:

@@ -18,8 +18,15 @@ their own ROS domain), then, in this order:
    %, p50/p95/max latency, throughput;
 6. **timeout**: ``planning_timeout`` set at run time to its minimum (0.1 s): slow requests must be
    answered as timeouts, latency vs timeout, and the queue wait of the next request;
-7. **shutdown**: SIGINT to every node while a plan is running: exit codes, seconds to exit,
+7. **matrix** and **models** (:mod:`gpis_grasp_ros.tools.soak_load`): the concurrency matrix (1-10 new
+   client processes x workers 1, 2, 4 x max_queue 32, 128, 1024, bursts and closed loops: every request
+   answered) and a stream of GPIS models into planner_node (RSS slope after warm-up);
+8. **shutdown**: SIGINT to every node while a plan is running: exit codes, seconds to exit,
    error lines in the logs, and the in-flight caller's answer.
+
+During the whole run every node is asked for a parameter every 50 ms (latency p50/p99/max per node,
+while estimates, fits and plans run). ``--phases`` picks phases (the model from the first bag is used
+when ``replay`` is left out).
 
 Bounded in count and time; loopback only. Prints a table of the figures (and ``--json`` writes them).
 """
@@ -59,6 +66,26 @@ NODES = {
     'gripper_sim_node': [],
 }
 MODULES = {'segmentation_images': 'segmentation_node'}
+#: The parameter the pinger asks each node for.
+PINGED = {'segmentation_node': 'frames_to_average', 'gpis_node': 'blur_samples', 'planner_node': 'max_queue',
+          'gripper_sim_node': 'jaw_width'}
+PHASES = ('replay', 'fuzz', 'bad_requests', 'load', 'matrix', 'models', 'timeout', 'shutdown')
+
+
+def start_node(soak: Soak, name: str, extra: list[str], suffix: str = '') -> None:
+    """Start node ``name`` as a process (its log in the soak folder; an earlier log of it is kept)."""
+    module = f'gpis_grasp_ros.ros.nodes.{MODULES.get(name, name)}'
+    if name in soak.logs:
+        soak.logs[f'{name}{suffix or len(soak.logs)}#old'] = soak.logs[name]
+    log = soak.workdir / f'{name}{suffix}.log'
+    soak.logs[name] = log
+    cmd = [sys.executable, '-X', 'faulthandler', '-m', module, '--ros-args', *extra]
+    soak.procs[name] = subprocess.Popen(cmd, env=soak.env, stdout=log.open('w'), stderr=subprocess.STDOUT, cwd=ROOT)
+    deadline = time.monotonic() + 60
+    while 'started;' not in log.read_text():
+        if soak.procs[name].poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f'{name} did not start; see {log}')
+        time.sleep(0.2)
 
 
 def _percentile(values: list[float], q: float) -> float:
@@ -101,21 +128,8 @@ class Soak:
     # ------------------------------------------------------------------ processes
     def start_nodes(self) -> None:
         for name, extra in NODES.items():
-            module = f'gpis_grasp_ros.ros.nodes.{MODULES.get(name, name)}'
-            log = self.workdir / f'{name}.log'
-            self.logs[name] = log
-            cmd = [sys.executable, '-X', 'faulthandler', '-m', module, '--ros-args', *extra]
-            self.procs[name] = subprocess.Popen(cmd, env=self.env, stdout=log.open('w'), stderr=subprocess.STDOUT,
-                                                cwd=ROOT)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            if all('started;' in self.logs[n].read_text() for n in self.procs):
-                return
-            dead = [n for n, p in self.procs.items() if p.poll() is not None]
-            if dead:
-                raise RuntimeError(f'node(s) {dead} exited at start-up; see {self.workdir}')
-            time.sleep(0.2)
-        raise RuntimeError('nodes did not start within 60 s')
+            start_node(self, name, extra)
+        self.deaths: list[str] = []
 
     def log_count(self, pattern: str, names: list[str] | None = None) -> int:
         return sum(len(re.findall(pattern, self.logs[n].read_text())) for n in (names or list(self.logs)))
@@ -516,6 +530,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--concurrent', type=int, default=100, help='concurrent plan_grasp requests (default 100)')
     p.add_argument('--clients', type=int, default=5, help='client nodes sending them (default 5)')
     p.add_argument('--num-initial-grasps', type=int, default=5, help='N_g of the load requests (default 5)')
+    p.add_argument('--phases', default=','.join(PHASES), help=f"comma-separated phases to run (default: all: "
+                   f"{','.join(PHASES)})")
+    p.add_argument('--matrix-client', choices=('plain', 'ask-again'), default='plain',
+                   help="matrix clients: plain rclpy calls (default: every answer must arrive as sent) or "
+                        "GraspPlannerClient's asking again")
+    p.add_argument('--models', type=int, default=10000, help='GPIS models streamed into planner_node (default 10000)')
     p.add_argument('--json', default=None, help='also write the figures to this JSON file')
     p.add_argument('--keep-logs', action='store_true', help='keep the node logs (their folder is printed)')
     return p
@@ -532,24 +552,47 @@ def _print(figures: dict[str, Any]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from gpis_grasp_ros.tools import soak_load
     bags = [Path(b) for b in args.bags] if args.bags else sorted((ROOT / 'bags').glob('*.mcap'))
+    phases = [p.strip() for p in args.phases.split(',') if p.strip()]
+    unknown = sorted(set(phases) - set(PHASES))
+    if unknown:
+        print(f"soak: unknown phase(s) {', '.join(unknown)}; known: {', '.join(PHASES)}", file=sys.stderr)
+        return 2
     workdir = Path(tempfile.mkdtemp(prefix='gpis-soak-'))
     soak = Soak(args.domain, workdir)
     t0 = time.monotonic()
     try:
         soak.start_nodes()
-        soak.replay(bags, args.passes)
+        pinger = soak_load.ParameterPinger(soak, PINGED)
+        pinger.start()
+        soak.replay(bags if 'replay' in phases else bags[:1], args.passes if 'replay' in phases else 1)
         if soak.last_model is None:
             print('soak: no GPIS model after the replay; see ' + str(workdir), file=sys.stderr)
             return 1
-        before = soak.plan_once()
-        soak.fuzz(args.malformed)
-        after = soak.plan_once()
-        soak.figures['fuzz']['plan_identical_before_after'] = _same_plan(before, after)
-        soak.bad_requests(args.bad_requests)
-        soak.load(args.concurrent, args.clients, args.num_initial_grasps)
-        soak.timeouts()
-        soak.shutdown()
+        if 'fuzz' in phases:
+            before = soak.plan_once()
+            soak.fuzz(args.malformed)
+            after = soak.plan_once()
+            soak.figures['fuzz']['plan_identical_before_after'] = _same_plan(before, after)
+        if 'bad_requests' in phases:
+            soak.bad_requests(args.bad_requests)
+        if 'load' in phases:
+            soak.load(args.concurrent, args.clients, args.num_initial_grasps)
+        if 'matrix' in phases:
+            soak_load.matrix(soak, soak.last_model, retry=args.matrix_client == 'ask-again')
+        if 'models' in phases:
+            soak_load.model_stream(soak, soak.last_model, args.models)
+        if 'timeout' in phases:
+            soak.timeouts()
+        soak.figures['parameter_latency'] = pinger.stop()
+        soak.figures['health'] = {
+            'node_deaths_before_shutdown': sum(p.poll() is not None for p in soak.procs.values()),
+            'guard_exceptions': soak.log_count(r'unexpected \w+'),
+            'tracebacks': soak.log_count(r'Traceback'),
+        }
+        if 'shutdown' in phases:
+            soak.shutdown()
     finally:
         soak.close()
     soak.figures['total_s'] = {'wall_clock_s': time.monotonic() - t0}

@@ -88,19 +88,19 @@ def test_grid_limits_name_the_field(change, field):
 
 
 def test_grid_values():
-    g = GridGeometry(0.0, 0.0, 0.004, 3, 2, 0.7, 'c')
-    occ = messages.numpy_to_occupancy_grid(F, np.zeros((2, 3), np.int8), g)
+    g = GridGeometry(0.0, 0.0, 0.004, 4, 4, 0.7, 'c')
+    occ = messages.numpy_to_occupancy_grid(F, np.zeros((4, 4), np.int8), g)
     validation.check_occupancy_grid(occ, LIM)
-    bad = OccupancyGrid(header=occ.header, info=occ.info, data=[0, 0, 0, 0, 0, -7])
+    bad = OccupancyGrid(header=occ.header, info=occ.info, data=[0] * 15 + [-7])
     with pytest.raises(ValueError, match=r'\[-1, 100\]'):
         validation.check_occupancy_grid(bad, LIM)
-    noise = FloatGrid(header=occ.header, info=occ.info, unit='m^2', data=[math.nan] * 6)
+    noise = FloatGrid(header=occ.header, info=occ.info, unit='m^2', data=[math.nan] * 16)
     with pytest.raises(ValueError, match='all NaN'):
         validation.check_float_grid(noise, LIM, 'noise', allow_nan=True, low=0.0, high=1.0)
-    noise.data = [0.0, 5.0, 0.0, 0.0, 0.0, 0.0]
+    noise.data = [0.0, 5.0] + [0.0] * 14
     with pytest.raises(ValueError, match='outside'):
         validation.check_float_grid(noise, LIM, 'noise', allow_nan=True, low=0.0, high=1.0)
-    noise.data = [0.0, -math.inf, 0.0, 0.0, 0.0, 0.0]
+    noise.data = [0.0, -math.inf] + [0.0] * 14
     with pytest.raises(ValueError, match='non-finite'):
         validation.check_float_grid(noise, LIM, 'noise', allow_nan=True, low=0.0, high=1.0)
 

@@ -61,6 +61,48 @@ SERVICE_QOS = QoSProfile(
 SHUTTING_DOWN = 'shutting down'
 
 
+def _libc() -> Any:
+    try:
+        import ctypes
+        libc = ctypes.CDLL('libc.so.6')
+        libc.malloc_trim, libc.mallopt  # noqa: B018 - glibc only
+        return libc
+    except (OSError, AttributeError):
+        return None
+
+
+def _malloc_trim() -> Callable[[], None]:
+    libc = _libc()
+    return (lambda: None) if libc is None else (lambda: libc.malloc_trim(0) and None)
+
+
+#: Arrays at least this large (bytes) get their own mapping, returned to the system when freed.
+HEAP_MMAP_THRESHOLD = 4 << 20
+#: malloc arenas of the process (glibc's default is 8 per core, one more for each busy thread).
+HEAP_ARENAS = 2
+
+
+def bound_heap() -> None:
+    """Keep a node's resident memory bounded by what it holds (glibc; a no-op elsewhere).
+
+    Without this, glibc's mmap threshold grows to 32 MB after the first large array is freed, so the
+    per-model and per-plan arrays (a GPIS posterior, a 1000-sample SDF bank of ~60 MB) come from the
+    heaps of whichever threads made them and stay resident there: planner_node grew from 0.3 to 1 GB
+    over 500 models and 80 plans. A fixed threshold of :data:`HEAP_MMAP_THRESHOLD` and
+    :data:`HEAP_ARENAS` arenas kept it within 0.34-0.36 GB over the same stream (docs/reliability.md).
+    """
+    libc = _libc()
+    if libc is not None:
+        libc.mallopt(-3, HEAP_MMAP_THRESHOLD)  # M_MMAP_THRESHOLD (also stops its dynamic growth)
+        libc.mallopt(-8, HEAP_ARENAS)  # M_ARENA_MAX
+
+
+#: Give the heap's freed pages back to the system (glibc ``malloc_trim``; a no-op elsewhere). A node that
+#: replaces large arrays often (a new GPIS model every frame) otherwise keeps the freed pages of every
+#: thread's arena resident: RSS creeps up with fragmentation although nothing is held.
+trim_heap = _malloc_trim()
+
+
 def sensor_qos(reliability: str) -> QoSProfile:
     """Camera-input QoS: ``best_effort`` (``qos_profile_sensor_data``, default) or ``reliable``."""
     if reliability == 'reliable':
@@ -204,6 +246,7 @@ def run_node(node_class: type[GuardedNode], args: list[str] | None = None) -> in
     value at start-up ends the process with a one-line error (exit code 2) instead of a stack
     trace. Returns the exit code.
     """
+    bound_heap()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends the node like Ctrl-C
     node = executor = None

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import OccupancyGrid
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import Image
 
 from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
@@ -43,8 +44,6 @@ from gpis_grasp_ros.ros.params import ZERO_IS_NONE, Param, ParamTable
 
 #: Largest per-cell noise variance accepted on object/noise_map (m^2; a 1 m standard deviation).
 MAX_NOISE_VARIANCE = 1.0
-#: Largest object height (m above the table) taken from object/top; higher is not an object on the table.
-MAX_OBJECT_HEIGHT = 1.0
 
 
 @dataclass(frozen=True)
@@ -123,11 +122,15 @@ class GpisNode(GuardedNode):
         self._top: PointStamped | None = None
         self._published: tuple[gpis.GpisPosterior, Any, float] | None = None  # last model, its header, its height
         self._lock = threading.Lock()
-        self.create_subscription(PointStamped, 'object/top', guarded(self, 'object/top', self._on_top), LATCHED_QOS)
+        # the inputs one at a time, apart from the parameter services (answered while a fit runs)
+        inputs = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(PointStamped, 'object/top', guarded(self, 'object/top', self._on_top), LATCHED_QOS,
+                                 callback_group=inputs)
         self.create_subscription(OccupancyGrid, 'object/occupancy',
-                                 guarded(self, 'object/occupancy', self._on_occupancy), LATCHED_QOS)
+                                 guarded(self, 'object/occupancy', self._on_occupancy), LATCHED_QOS,
+                                 callback_group=inputs)
         self.create_subscription(FloatGrid, 'object/noise_map', guarded(self, 'object/noise_map', self._on_noise),
-                                 LATCHED_QOS)
+                                 LATCHED_QOS, callback_group=inputs)
         self.model_pub = self.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
         self.mean_pub = self.create_publisher(FloatGrid, 'gpis/mean', LATCHED_QOS)
         self.var_pub = self.create_publisher(FloatGrid, 'gpis/variance', LATCHED_QOS)
@@ -157,8 +160,11 @@ class GpisNode(GuardedNode):
         self._try_fit()
 
     def _on_top(self, msg: PointStamped) -> None:
-        if not np.isfinite(messages.point_stamped_to_numpy(msg)).all():
-            self.reject('ignoring object/top: non-finite point')
+        try:
+            validation.check_stamp(msg.header, 'PointStamped object/top')
+            validation.check_point(msg, 'PointStamped object/top.point', self.config.limits)
+        except ValueError as exc:
+            self.reject(f'ignoring object/top: {exc}')
             return
         with self._lock:
             self._top = msg
@@ -186,14 +192,18 @@ class GpisNode(GuardedNode):
 
     def object_height(self, header, geometry, tolerance_s: float) -> float:
         """Height (m) above the grid's table plane of the ``object/top`` point matching ``header`` (stamp within
-        ``tolerance_s``, same frame); 0 (unknown) without one."""
+        ``tolerance_s``, same frame); 0 (unknown) without one, or when the point is off the grid or higher than
+        :data:`~gpis_grasp_ros.ros.validation.MAX_OBJECT_HEIGHT` (logged)."""
         with self._lock:
             top = self._top
         if top is None or top.header.frame_id != header.frame_id or abs(
                 messages.stamp_to_ns(top.header.stamp) - messages.stamp_to_ns(header.stamp)) > tolerance_s * 1e9:
             return 0.0
-        height = float(geometry.from_sensor(messages.point_stamped_to_numpy(top))[1])
-        return height if np.isfinite(height) and 0.0 < height <= MAX_OBJECT_HEIGHT else 0.0
+        try:
+            return validation.object_height_of(messages.point_stamped_to_numpy(top), geometry)
+        except ValueError as exc:
+            self.reject(f'ignoring object/top: {exc}; object height unknown')
+            return 0.0
 
     def _on_noise(self, msg: FloatGrid) -> None:
         try:

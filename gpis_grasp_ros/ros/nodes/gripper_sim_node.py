@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PointStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 
 from gpis_grasp_interfaces.msg import FloatGrid
 from gpis_grasp_interfaces.srv import ExecuteGrasp
@@ -64,12 +65,14 @@ class GripperSimNode(GuardedNode):
         self._sdf = None
         self._geometry = None
         self._com = None
+        work = MutuallyExclusiveCallbackGroup()  # apart from the parameter services (answered during trials)
         self.create_subscription(FloatGrid, 'ground_truth/sdf', guarded(self, 'ground_truth/sdf', self._on_sdf),
-                                 LATCHED_QOS)
+                                 LATCHED_QOS, callback_group=work)
         self.create_subscription(PointStamped, 'ground_truth/center_of_mass',
-                                 guarded(self, 'ground_truth/center_of_mass', self._on_com), LATCHED_QOS)
+                                 guarded(self, 'ground_truth/center_of_mass', self._on_com), LATCHED_QOS,
+                                 callback_group=work)
         self.create_service(ExecuteGrasp, 'execute_grasp', guarded_service(self, 'execute_grasp', self._on_execute),
-                            qos_profile=SERVICE_QOS)
+                            qos_profile=SERVICE_QOS, callback_group=work)
         log_startup(self, ['ground_truth/sdf', 'ground_truth/center_of_mass'], [],
                     ['jaw_width', 'max_opening', 'friction_coefficient', 'position_noise'],
                     services=['execute_grasp'])
@@ -79,7 +82,9 @@ class GripperSimNode(GuardedNode):
 
     def _on_sdf(self, msg: FloatGrid) -> None:
         try:
-            validation.check_map_meta_data(msg.info, validation.Limits(max_grid_cells=4_000_000, min_resolution=1e-5),
+            validation.check_stamp(msg.header, 'FloatGrid ground_truth/sdf')
+            validation.check_map_meta_data(msg.info, validation.Limits(max_grid_cells=4_000_000, min_resolution=1e-5,
+                                                                       min_extent=self.gripper.jaw_width),
                                            'FloatGrid ground_truth/sdf')
             values, geometry = messages.float_grid_to_numpy(msg)
             if not np.isfinite(values).all():
@@ -97,6 +102,10 @@ class GripperSimNode(GuardedNode):
     def _on_com(self, msg: PointStamped) -> None:
         try:
             xyz = validation.check_point(msg, 'PointStamped ground_truth/center_of_mass.point', self.limits)
+            with self._lock:
+                geometry = self._geometry
+            if geometry is not None:  # within the grid's reach (checked again at execution otherwise)
+                validation.check_on_grid(geometry.from_sensor(xyz)[0], geometry, 'ground_truth/center_of_mass')
         except ValueError as exc:
             self.reject(f'ignoring ground_truth/center_of_mass: {exc}')
             return
@@ -115,6 +124,12 @@ class GripperSimNode(GuardedNode):
         # Camera-frame points → the truth grid's (x, y) in its own table plane (the planning grid's table
         # frame may differ slightly): orthogonal projection along the true table normal.
         com = None if com is None else geometry.from_sensor(com)[0]
+        if com is not None:
+            try:
+                validation.check_on_grid(com, geometry, 'ground_truth/center_of_mass')
+            except ValueError as exc:
+                response.message = f'{exc}: not the centre of mass of this ground truth'
+                return response
         trials = int(request.trials) or 10
         if trials > MAX_TRIALS:
             response.message = f'trials={trials} is too many (at most {MAX_TRIALS})'

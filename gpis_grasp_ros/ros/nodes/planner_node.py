@@ -13,7 +13,16 @@ cancellable (:class:`gpis_grasp_ros.core.planners.PlanControl`): a timeout, an a
 shutdown stops the computation at the planner's next checkpoint (milliseconds on a 25 x 25 grid)
 and the worker takes the next request at once. The service keeps a request history of
 :data:`~gpis_grasp_ros.ros.nodes.common.SERVICE_QUEUE_DEPTH` so that a burst of calls is not
-dropped by DDS before the node takes it.
+dropped by DDS before the node takes it. A waiting service call holds no thread: the service answers
+from the planning thread (:class:`~gpis_grasp_ros.ros.nodes.replies.DeferredService`, which sends an
+answer again when the middleware could not deliver it). The answer is built in the planning thread too,
+so per-thread scratch memory (the contact search's workspace) exists for ``workers`` threads only.
+
+**Asking again.** A service call with a non-zero seed is idempotent: the same request (method, N_g or
+K, λ, seed) on the same model and parameters joins the plan in progress or gets the answer already given
+(the last :data:`ANSWERS_KEPT`), so a caller that got no answer may send it again without the node
+planning twice. (Planning is deterministic given the seed, so another caller sending the same seeded
+request gets the grasp it would have got; rclpy does not tell a service who called.)
 
 **The first model.** A request arriving before any model waits up to ``model_wait`` s for one (a
 model published just before the request may still be being taken) before it is answered
@@ -57,10 +66,11 @@ from gpis_grasp_ros.ros.nodes.common import (
     SHUTTING_DOWN,
     GuardedNode,
     guarded,
-    guarded_service,
     log_startup,
     run_node,
+    trim_heap,
 )
+from gpis_grasp_ros.ros.nodes.replies import DeferredService, Reply
 from gpis_grasp_ros.ros.nodes.shared_params import (
     GRIPPER,
     check_gripper,
@@ -75,9 +85,15 @@ MAX_INITIAL_GRASPS = 1000
 #: Methods whose request field num_initial_grasps means K heuristic grasp samples.
 SAMPLING_METHODS = ('gp-m', 'gp-p')
 MAX_GRASP_SAMPLES = 100000
-#: Upper bound of the max_queue parameter (the executor keeps one thread per waiting caller).
-MAX_QUEUE_LIMIT = 128
+#: Upper bound of the max_queue parameter (a waiting action goal holds an executor thread; a service call none).
+MAX_QUEUE_LIMIT = 1024
 MAX_WORKERS = 8
+#: Executor threads for action goals waiting for their plan (see PlannerNode.executor_threads).
+ACTION_GOAL_THREADS = 16
+#: Seconds between heap trims while new models arrive (common.trim_heap).
+TRIM_PERIOD = 2.0
+#: Answers to seeded service calls kept for callers that ask again (cleared when a new model arrives).
+ANSWERS_KEPT = 256
 #: Range of the uncertainty_penalty parameter; requests outside it (other than negative = default) are rejected.
 LAMBDA_RANGE = (0.0, 1000.0)
 
@@ -135,7 +151,8 @@ PARAMETERS = ParamTable('planner_node', [
           low=-1.0, high=0.5),
     Param('object_height', float, 'height of the object above the table for the automatic grasp_height; 0 = the '
           'height measured by segmentation (GpisModel.object_height; if that is 0 too, unknown: the jaws close '
-          'half a jaw height above the table); > 0 overrides it', PlannerConfig, unit='m', low=0.0, high=1.0),
+          'half a jaw height above the table); > 0 overrides it', PlannerConfig, unit='m', low=0.0,
+          high=validation.MAX_OBJECT_HEIGHT),
     Param('max_queue', int, "requests (service calls + action goals) that may wait for a worker; more are "
           "answered 'queue full' at once", PlannerConfig, low=0, high=MAX_QUEUE_LIMIT),
     Param('workers', int, 'planning threads working on requests in parallel', PlannerConfig, low=1,
@@ -150,8 +167,10 @@ def build_config(v: dict[str, Any]) -> PlannerConfig:
     config = PARAMETERS.kwargs(v, PlannerConfig)
     if config['method'] not in planners.METHODS:
         raise ValueError(f"method={config['method']!r} is not one of {', '.join(planners.METHODS)}")
+    # a model narrower than a jaw pad cannot be planned on (validation.check_map_meta_data)
+    limits = validation.Limits(**PARAMETERS.kwargs(v, validation.Limits), min_extent=gripper.jaw_width)
     return PlannerConfig(planner=planners.PlannerParams(gripper=gripper, **PARAMETERS.kwargs(v, _PP)),
-                         limits=validation.Limits(**PARAMETERS.kwargs(v, validation.Limits)), **config)
+                         limits=limits, **config)
 
 
 def _object_height(config: PlannerConfig, model: Any) -> float:
@@ -181,13 +200,20 @@ class PlanJob:
     error: BaseException | None = None
     stopped: str = ''
     done: threading.Event = field(default_factory=threading.Event)
+    response: Any = None                  # GraspPlan.Response or PlanGrasp.Result, filled when answered
+    replies: list = field(default_factory=list)  # service callers waiting for this job (DeferredService)
+    key: tuple | None = None              # idempotency key of a seeded service call
+    answered: bool = False
 
 
 class PlannerNode(GuardedNode):
     """Thin ROS wrapper around :func:`gpis_grasp_ros.core.planners.plan` with a bounded request queue."""
 
-    #: one thread per waiting caller and per worker
-    executor_threads = MAX_QUEUE_LIMIT + MAX_WORKERS + 4
+    #: Bounded: every thread the executor ever started keeps its own scratch memory (malloc arena, numpy
+    #: temporaries), so RSS grows with the thread count. Service calls hold none while they wait; an action
+    #: goal holds one until answered, so up to ACTION_GOAL_THREADS goals wait at once (more are accepted and
+    #: taken as threads free up). The model callback, parameters and services share the rest.
+    executor_threads = ACTION_GOAL_THREADS + 4
 
     def __init__(self, **kwargs) -> None:
         super().__init__('planner_node', **kwargs)
@@ -213,12 +239,18 @@ class PlannerNode(GuardedNode):
                                  LATCHED_QOS, callback_group=MutuallyExclusiveCallbackGroup())
         self.marker_pub = self.create_publisher(MarkerArray, 'grasp/markers', LATCHED_QOS)
         self.image_pub = self.create_publisher(Image, 'grasp/image', LATCHED_QOS)
+        self._answers: collections.OrderedDict[tuple, Any] = collections.OrderedDict()  # key -> response
+        self._keyed: dict[tuple, PlanJob] = {}  # key -> job in progress
+        self._answer_basis: tuple = (None, None)  # the model and configuration the kept answers were planned with
+        self._watchdog = threading.Thread(target=self._watch_deadlines, name='grasp-planning-deadlines', daemon=True)
+        self._watchdog.start()
         requests = ReentrantCallbackGroup()
-        self.create_service(GraspPlan, 'plan_grasp', guarded_service(self, 'plan_grasp', self._on_plan),
-                            qos_profile=SERVICE_QOS, callback_group=requests)
+        self.plan_service = DeferredService(self, GraspPlan, 'plan_grasp', self._on_plan, SERVICE_QOS,
+                                            callback_group=requests)
         self._action = ActionServer(self, PlanGrasp, 'plan_grasp', execute_callback=self._execute_goal,
                                     goal_callback=self._on_goal, cancel_callback=lambda _goal: CancelResponse.ACCEPT,
-                                    callback_group=requests)
+                                    callback_group=requests, goal_service_qos_profile=SERVICE_QOS,
+                                    result_service_qos_profile=SERVICE_QOS, cancel_service_qos_profile=SERVICE_QOS)
         log_startup(self, [self._model_topic], ['grasp/markers', 'grasp/image'],
                     ['method', 'num_initial_grasps', 'num_shape_samples', 'uncertainty_penalty', 'planning_timeout',
                      'max_queue', 'workers'], services=['plan_grasp'], actions=['plan_grasp'])
@@ -265,9 +297,10 @@ class PlannerNode(GuardedNode):
     def _make_job(self, method_field: str, n_field: int, lam_field: float, seed_field: int) -> PlanJob | str:
         """Validate a request (service or goal) → a job, or the reason it is rejected."""
         config = self.config
-        method = (method_field or config.method).strip().lower()
+        method = method_field or config.method  # exactly one of the names; empty = the node's method
         if method not in planners.METHODS:
-            return f"unknown method '{method_field}'; valid: {', '.join(planners.METHODS)}"
+            return (f"unknown method '{method_field}'; valid: {', '.join(planners.METHODS)} (exactly; empty = the "
+                    f"node's method '{config.method}')")
         sampling = method in SAMPLING_METHODS
         default_n = config.planner.n_grasp_samples if sampling else config.planner.n_initial_grasps
         limit = MAX_GRASP_SAMPLES if sampling else MAX_INITIAL_GRASPS
@@ -299,7 +332,7 @@ class PlannerNode(GuardedNode):
                 return (f'planner queue full: {len(self._queue)} requests waiting (max_queue={job.config.max_queue}) '
                         f'and {len(self._running)} planning; retry later')
             self._queue.append(job)
-            self._queue_cv.notify()
+            self._queue_cv.notify_all()  # the workers and the deadline watchdog wait on it
         return None
 
     def queue_length(self) -> int:
@@ -308,18 +341,62 @@ class PlannerNode(GuardedNode):
             return len(self._queue)
 
     def _wait(self, job: PlanJob) -> None:
-        """Block until the job is answered: finished, stopped, past its deadline, or shutting down.
+        """Block until the job is answered (finished, stopped, past its deadline, or shutting down)."""
+        job.done.wait()
 
-        The caller is answered at the deadline even if the planner has not reached its next
-        checkpoint yet (the worker stops there and then takes the next request).
-        """
-        while not job.done.wait(0.02):
-            if self.shutting_down.is_set():
-                job.stopped = job.stopped or SHUTTING_DOWN
+    def _watch_deadlines(self) -> None:
+        """Answer a running job at its deadline (or at shutdown) even if the planner has not reached its
+        next checkpoint yet; the worker stops there and then takes the next request."""
+        trimmed_for, next_trim = None, 0.0
+        while True:
+            with self._queue_cv:
+                self._queue_cv.wait(0.02)
+                running = list(self._running)
+                stopping = self.shutting_down.is_set()
+            with self._lock:
+                model = self._model
+            if model is not trimmed_for and time.monotonic() > next_trim:  # models replaced: free their pages
+                trim_heap()
+                trimmed_for, next_trim = model, time.monotonic() + TRIM_PERIOD
+            now = time.monotonic()
+            for job in running:
+                if stopping:
+                    self._finish(job, SHUTTING_DOWN)
+                elif job.started is not None and now > job.deadline:
+                    self._finish(job, 'timeout')
+            if stopping and not running:
+                with self._queue_cv:
+                    if not self._running and not self._queue:
+                        return
+
+    def _finish(self, job: PlanJob, stopped: str = '') -> None:
+        """Answer the job once (its service callers and its action goal): the first call wins."""
+        with self._queue_cv:
+            if job.answered:
                 return
-            if job.started is not None and time.monotonic() > job.deadline:
-                job.stopped = job.stopped or 'timeout'
-                return
+            job.answered = True
+            if stopped:
+                job.stopped = job.stopped or stopped
+        if job.response is None:
+            job.response = GraspPlan.Response()
+        try:
+            self._answer(job.response, job)
+        except Exception as exc:  # noqa: BLE001 - the callers always get an answer
+            job.response.success = False
+            job.response.message = f'internal error in plan_grasp: {type(exc).__name__}: {exc}'
+            self.get_logger().error(job.response.message)
+        with self._queue_cv:
+            replies, job.replies = job.replies, []
+            if job.key is not None and self._keyed.get(job.key) is job:
+                del self._keyed[job.key]
+                if job.model is self._answer_basis[0] and job.config is self._answer_basis[1]:
+                    self._answers[job.key] = job.response
+                    while len(self._answers) > ANSWERS_KEPT:
+                        self._answers.popitem(last=False)
+        job.done.set()
+        for reply in replies:
+            reply.send(job.response)
+            self.exit_callback()
 
     def _work(self) -> None:
         while True:
@@ -327,19 +404,19 @@ class PlannerNode(GuardedNode):
                 while not self._queue and not self.shutting_down.is_set():
                     self._queue_cv.wait()
                 if self.shutting_down.is_set():
-                    for job in self._queue:
-                        job.stopped = SHUTTING_DOWN
-                        job.done.set()
+                    queued = list(self._queue)
                     self._queue.clear()
-                    return
+                    break
                 job = self._queue.popleft()
                 self._running.add(job)
             try:
                 self._run(job)
+                self._finish(job)
             finally:
                 with self._queue_cv:
                     self._running.discard(job)
-                job.done.set()
+        for job in queued:
+            self._finish(job, SHUTTING_DOWN)
 
     def _run(self, job: PlanJob) -> None:
         job.started = time.monotonic()
@@ -407,18 +484,59 @@ class PlannerNode(GuardedNode):
             response.message = 'planning did not finish'
         return response
 
-    def _on_plan(self, request: GraspPlan.Request, response: GraspPlan.Response) -> GraspPlan.Response:
+    def _on_plan(self, request: GraspPlan.Request, reply: Reply) -> None:
+        """A service call: answered at once (refused, asked again) or later by the planning thread."""
+        response = reply.response
         response.success = False
+        if self.shutting_down.is_set():
+            response.message = f'{self.get_name()} is {SHUTTING_DOWN}'
+            reply.send()
+            return
+        key = None
+        if request.seed:
+            key = (str(request.method), int(request.num_initial_grasps),
+                   float(request.uncertainty_penalty), int(request.seed))
+        with self._queue_cv:
+            self._forget_answers_of_old_models()
+            answer = self._answers.get(key) if key is not None else None
+            if answer is not None:  # asked again: the answer already given
+                self._answers.move_to_end(key)
+            elif key is not None and key in self._keyed and self._keyed[key].config is self.config:
+                # asked again while planning: join that job
+                self.enter_callback()
+                self._keyed[key].replies.append(reply)
+                return
+        if answer is not None:
+            reply.send(answer)
+            return
         job = self._make_job(request.method, request.num_initial_grasps, request.uncertainty_penalty, request.seed)
         if isinstance(job, str):
             response.message = job
-            return response
+            reply.send()
+            return
+        job.response, job.replies = response, [reply]
+        self.enter_callback()
+        with self._queue_cv:
+            if key is not None and job.model is self._answer_basis[0] and job.config is self._answer_basis[1]:
+                job.key = key
+                self._keyed[key] = job
         refused = self._submit(job)
         if refused is not None:
+            with self._queue_cv:
+                if job.key is not None and self._keyed.get(job.key) is job:
+                    del self._keyed[job.key]
+                job.replies = []
             response.message = refused
-            return response
-        self._wait(job)
-        return self._answer(response, job)
+            reply.send()
+            self.exit_callback()
+
+    def _forget_answers_of_old_models(self) -> None:
+        """Kept answers belong to one model and one configuration (caller holds the queue lock)."""
+        with self._lock:
+            basis = (self._model, self.config)
+        if basis[0] is not self._answer_basis[0] or basis[1] is not self._answer_basis[1]:
+            self._answers.clear()
+            self._answer_basis = basis
 
     # ------------------------------------------------------------------ action
     def _on_goal(self, _goal: Any) -> GoalResponse:
@@ -456,13 +574,13 @@ class PlannerNode(GuardedNode):
 
         job.cancelled = lambda: goal_handle.is_cancel_requested
         job.on_progress = progress
+        job.response = result
         refused = self._submit(job)
         if refused is not None:
             result.message = refused
             goal_handle.abort()
             return result
         self._wait(job)
-        self._answer(result, job)
         if job.stopped == 'cancelled':
             goal_handle.canceled()
         elif result.success:
@@ -483,6 +601,7 @@ class PlannerNode(GuardedNode):
 
     def destroy_node(self) -> None:
         self.begin_shutdown()
+        self.plan_service.close()
         try:
             self._action.destroy()
         except Exception:  # noqa: BLE001 - already destroyed

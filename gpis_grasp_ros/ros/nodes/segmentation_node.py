@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import OccupancyGrid
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 
@@ -195,23 +196,30 @@ class SegmentationNode(GuardedNode):
         self._lock = threading.Lock()
 
         qos = sensor_qos(inputs.input_reliability)
+        # frames and the burst timer one at a time, apart from the parameter services (answered during an
+        # estimate)
+        self._inputs = MutuallyExclusiveCallbackGroup()
         if self.input_mode == 'cloud':
             self.create_subscription(PointCloud2, 'camera/depth/points',
-                                     guarded(self, 'camera/depth/points', self._on_cloud), qos)
+                                     guarded(self, 'camera/depth/points', self._on_cloud), qos,
+                                     callback_group=self._inputs)
         else:
             self.create_subscription(Image, 'camera/rgb/image_raw',
-                                     guarded(self, 'camera/rgb/image_raw', self._on_rgb), qos)
+                                     guarded(self, 'camera/rgb/image_raw', self._on_rgb), qos,
+                                     callback_group=self._inputs)
             self.create_subscription(Image, 'camera/depth/image_raw',
-                                     guarded(self, 'camera/depth/image_raw', self._on_depth), qos)
+                                     guarded(self, 'camera/depth/image_raw', self._on_depth), qos,
+                                     callback_group=self._inputs)
             self.create_subscription(CameraInfo, 'camera/rgb/camera_info',
-                                     guarded(self, 'camera/rgb/camera_info', self._on_info), qos)
+                                     guarded(self, 'camera/rgb/camera_info', self._on_info), qos,
+                                     callback_group=self._inputs)
         self.occupancy_pub = self.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
         self.noise_pub = self.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
         #: the target's top: grid centre at the measured object height (published before the grids)
         self.top_pub = self.create_publisher(PointStamped, 'object/top', LATCHED_QOS)
         #: latched outcome of the last segmentation: 'ok: ...' or 'failed: <reason>' (nothing published then)
         self.status_pub = self.create_publisher(String, 'segmentation/status', LATCHED_QOS)
-        self.create_timer(0.05, self._on_burst_timer)
+        self.create_timer(0.05, self._on_burst_timer, callback_group=self._inputs)
         topics = (['camera/depth/points'] if self.input_mode == 'cloud' else
                   ['camera/rgb/image_raw', 'camera/depth/image_raw', 'camera/rgb/camera_info'])
         log_startup(self, topics, ['object/occupancy', 'object/noise_map', 'object/top', 'segmentation/status'],

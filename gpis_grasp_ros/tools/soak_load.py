@@ -1,0 +1,325 @@
+"""The load phases of ``gpis-grasp soak``: the concurrency matrix, the model stream and parameter latency.
+
+* **matrix**: planner_node restarted for each ``workers`` value, ``max_queue`` set at run time, then
+  bursts and closed loops from 1-10 *new client processes* at once, each calling right after its
+  ``wait_for_service`` returned (the moment a new client's first answers can be lost while
+  discovery lags under CPU load). Every request must be answered: planned, or refused with a reason.
+* **models**: GPIS models published in a loop into planner_node, a plan every so often; its RSS
+  sampled, the slope after warm-up in MB per 1000 models.
+* **parameter latency**: a pinger asks each node for a parameter every 50 ms during the whole run
+  (while estimates, fits and plans run); p50/p99/max per node.
+
+Client processes run this module: ``python -m gpis_grasp_ros.tools.soak_load client ...`` prints one
+JSON line with its counts and latencies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: Requests of the matrix: cheap plans (GP-M, K samples, the planner's S set small at start-up).
+MATRIX_METHOD = 'gp-m'
+MATRIX_K = 5
+MATRIX_SHAPE_SAMPLES = 10
+#: (client processes, requests per client, mode) of every cell of the matrix.
+MATRIX_ROUNDS = ((1, 100, 'burst'), (5, 40, 'burst'), (10, 100, 'burst'), (10, 10, 'loop'))
+MATRIX_WORKERS = (1, 2, 4)
+MATRIX_QUEUES = (32, 128, 1024)
+
+
+def rss_mb(pid: int) -> float:
+    """Resident set size of ``pid`` (MB)."""
+    try:
+        text = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return float('nan')
+    m = re.search(r'VmRSS:\s+(\d+) kB', text)
+    return int(m.group(1)) / 1024 if m else float('nan')
+
+
+def threads(pid: int) -> int:
+    """Threads of ``pid``."""
+    try:
+        return int(re.search(r'Threads:\s+(\d+)', Path(f'/proc/{pid}/status').read_text()).group(1))
+    except (OSError, AttributeError):
+        return -1
+
+
+def slope_per_1000(xs: list[float], ys: list[float]) -> float:
+    """Least-squares slope of ``ys`` over ``xs``, per 1000 units of x."""
+    if len(xs) < 3:
+        return float('nan')
+    return float(np.polyfit(np.asarray(xs, float), np.asarray(ys, float), 1)[0] * 1000)
+
+
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float('nan')
+
+
+# --------------------------------------------------------------------------- client process
+def run_client(count: int, mode: str, seed0: int, retry: bool, timeout: float) -> dict[str, Any]:
+    """One client process: ``count`` plan_grasp calls at once (burst) or one after the other (loop)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from gpis_grasp_interfaces.srv import GraspPlan
+    from gpis_grasp_ros.ros.client import _ask
+    from gpis_grasp_ros.ros.nodes.common import SERVICE_QOS
+
+    rclpy.init()
+    node = rclpy.create_node(f'soak_client_{os.getpid()}')
+    cli = node.create_client(GraspPlan, 'plan_grasp', qos_profile=SERVICE_QOS)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    out: dict[str, Any] = {'sent': count, 'answered': 0, 'planned': 0, 'refused': 0, 'no_reason': 0,
+                           'lost': 0, 'latencies': [], 'reasons': {}}
+    if not cli.wait_for_service(timeout_sec=60.0):
+        out['lost'] = count
+        out['error'] = 'service not available'
+        return out
+    lock = threading.Lock()
+
+    def one(k: int) -> None:
+        request = GraspPlan.Request(method=MATRIX_METHOD, num_initial_grasps=MATRIX_K, seed=seed0 + k)
+        start = time.monotonic()
+        if retry:
+            answer = _ask(lambda: cli.call_async(request), cli.remove_pending_request, timeout)
+        else:
+            done = threading.Event()
+            future = cli.call_async(request)
+            future.add_done_callback(lambda _f: done.set())
+            answer = future.result() if done.wait(timeout) else None
+        with lock:
+            if answer is None:
+                out['lost'] += 1
+                return
+            out['answered'] += 1
+            out['latencies'].append(time.monotonic() - start)
+            if answer.success:
+                out['planned'] += 1
+            elif answer.message.strip():
+                out['refused'] += 1
+                reason = answer.message.split(':')[0][:40]
+                out['reasons'][reason] = out['reasons'].get(reason, 0) + 1
+            else:
+                out['no_reason'] += 1
+
+    if mode == 'burst':
+        threads = [threading.Thread(target=one, args=(k,)) for k in range(count)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    else:
+        for k in range(count):
+            one(k)
+    return out
+
+
+# --------------------------------------------------------------------------- the soak side
+class ParameterPinger:
+    """Asks every node for one parameter every ``period`` s in a thread; latencies per node."""
+
+    def __init__(self, soak: Any, nodes: dict[str, str], period: float = 0.05) -> None:
+        from rcl_interfaces.srv import GetParameters
+        self.soak = soak
+        self.period = period
+        self.clients = {name: (soak.node.create_client(GetParameters, f'/{name}/get_parameters'), param)
+                        for name, param in nodes.items()}
+        self.latencies: dict[str, list[float]] = {name: [] for name in nodes}
+        self.unanswered: dict[str, int] = dict.fromkeys(nodes, 0)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        from rcl_interfaces.srv import GetParameters
+        while not self._stop.is_set():
+            for name, (cli, param) in self.clients.items():
+                if self._stop.is_set():
+                    return
+                if not cli.service_is_ready():
+                    continue
+                res, latency = self.soak.call(cli, GetParameters.Request(names=[param]), timeout=5.0)
+                if res is None:
+                    self.unanswered[name] += 1
+                else:
+                    self.latencies[name].append(latency)
+                time.sleep(self.period)
+
+    def stop(self) -> dict[str, Any]:
+        self._stop.set()
+        self._thread.join(timeout=10.0)
+        return {name: {'calls': len(v), 'unanswered': self.unanswered[name], 'p50_ms': 1000 * _pct(v, 50),
+                       'p99_ms': 1000 * _pct(v, 99), 'max_ms': 1000 * max(v) if v else float('nan')}
+                for name, v in self.latencies.items()}
+
+
+def _restart_planner(soak: Any, workers: int) -> None:
+    """planner_node again with ``workers`` planning threads (read-only) and the matrix's cheap S."""
+    from gpis_grasp_ros.tools.soak import NODES, start_node
+    proc = soak.procs.get('planner_node')
+    if proc is not None and proc.poll() is None:
+        proc.terminate()
+        proc.wait(timeout=20)
+    args = NODES['planner_node']
+    extra = [x for flag, value in zip(args[::2], args[1::2], strict=True)
+             if not value.startswith(('max_queue', 'workers')) for x in (flag, value)]
+    extra += ['-p', f'workers:={workers}', '-p', f'num_shape_samples:={MATRIX_SHAPE_SAMPLES}',
+              '-p', f'max_queue:={MATRIX_QUEUES[0]}']
+    start_node(soak, 'planner_node', extra, suffix=f'_w{workers}')
+
+
+def _wait_planner_model(soak: Any, timeout: float = 60.0) -> bool:
+    from gpis_grasp_interfaces.srv import GraspPlan
+    cli = soak.plan_client()
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        res, _ = soak.call(cli, GraspPlan.Request(method=MATRIX_METHOD, num_initial_grasps=MATRIX_K, seed=1), 30)
+        if res is not None and res.success:
+            return True
+        time.sleep(0.5)
+    return False
+
+
+def matrix(soak: Any, model: Any, retry: bool, rounds=MATRIX_ROUNDS, workers_values=MATRIX_WORKERS,
+           queues=MATRIX_QUEUES, timeout: float = 120.0) -> None:
+    """The concurrency matrix (figures in ``soak.figures['matrix']``)."""
+    from gpis_grasp_interfaces.msg import GpisModel
+    from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
+    pub = soak.node.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
+    pub.publish(model)
+    cells, totals = [], dict.fromkeys(('sent', 'answered', 'planned', 'refused', 'no_reason', 'lost'), 0)
+    latencies: list[float] = []
+    reasons: dict[str, int] = {}
+    started = time.monotonic()
+    seed = 1000
+    for workers in workers_values:
+        _restart_planner(soak, workers)
+        if not _wait_planner_model(soak):
+            raise RuntimeError('planner_node has no model for the matrix')
+        for queue in queues:
+            if not soak.set_param('planner_node', 'max_queue', queue):
+                raise RuntimeError(f'max_queue={queue} not accepted')
+            for n_clients, per_client, mode in rounds:
+                procs = []
+                for _ in range(n_clients):
+                    seed += per_client
+                    cmd = [sys.executable, '-m', 'gpis_grasp_ros.tools.soak_load', 'client', '--count',
+                           str(per_client), '--mode', mode, '--seed', str(seed), '--timeout', str(timeout)]
+                    if retry:
+                        cmd.append('--retry')
+                    procs.append(subprocess.Popen(cmd, env=getattr(soak, 'client_env', soak.env),
+                                                  stdout=subprocess.PIPE, text=True))
+                cell = dict.fromkeys(totals, 0)
+                for p in procs:
+                    try:
+                        text, _ = p.communicate(timeout=timeout + 120)
+                        res = json.loads(text.strip().splitlines()[-1])
+                    except (subprocess.TimeoutExpired, ValueError, IndexError):
+                        p.kill()
+                        res = {'sent': per_client, 'lost': per_client}
+                    for k in cell:
+                        cell[k] += int(res.get(k, 0))
+                    latencies += res.get('latencies', [])
+                    for reason, n in res.get('reasons', {}).items():
+                        reasons[reason] = reasons.get(reason, 0) + int(n)
+                cells.append({'workers': workers, 'max_queue': queue, 'clients': n_clients, 'mode': mode, **cell})
+                for k in totals:
+                    totals[k] += cell[k]
+    soak.node.destroy_publisher(pub)
+    from gpis_grasp_ros.tools.soak import NODES, start_node
+    soak.procs['planner_node'].terminate()
+    soak.procs['planner_node'].wait(timeout=20)
+    start_node(soak, 'planner_node', NODES['planner_node'], suffix='_after_matrix')  # the soak's settings again
+    soak.figures['matrix'] = {
+        'cells': len(cells), 'client_api': 'ask again (client.py)' if retry else 'plain rclpy call_async',
+        **{f'requests_{k}': v for k, v in totals.items()},
+        'answered_pct': 100.0 * totals['answered'] / max(totals['sent'], 1),
+        'latency_p50_s': _pct(latencies, 50), 'latency_p99_s': _pct(latencies, 99),
+        'refusal_reasons': reasons,
+        'cells_with_losses': [c for c in cells if c['lost']],
+        'answers_sent_again': soak.log_count(r'sending it again'),
+        'answers_undeliverable': soak.log_count(r'could not be delivered'),
+        'wall_clock_s': time.monotonic() - started,
+    }
+    soak.figures['matrix_cells'] = {f"w{c['workers']} q{c['max_queue']} {c['clients']}x{c['mode']}":
+                                    f"{c['answered']}/{c['sent']} answered, {c['planned']} planned, "
+                                    f"{c['refused']} refused" for c in cells}
+
+
+def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_hz: float = 100.0) -> None:
+    """``count`` models (each a new message with its own stamp and slightly different targets) into
+    planner_node, a plan every ``plan_every``; RSS sampled every 100 models."""
+    import copy
+
+    from gpis_grasp_interfaces.msg import GpisModel
+    from gpis_grasp_interfaces.srv import GraspPlan
+    from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
+    pid = soak.procs['planner_node'].pid
+    pub = soak.node.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
+    cli = soak.plan_client()
+    rng = np.random.default_rng(0)
+    base_y = np.asarray(model.train_y, dtype=np.float64)
+    received_before = soak.log_count(r'GPIS received', ['planner_node'])
+    xs, ys, plans_ok, plans = [], [], 0, 0
+    started = time.monotonic()
+    for k in range(count):
+        m = copy.copy(model)
+        m.header = copy.deepcopy(model.header)
+        m.header.stamp.sec = int(model.header.stamp.sec) + k + 1
+        m.train_y = (base_y + rng.normal(0.0, 1e-5, base_y.shape)).tolist()
+        pub.publish(m)
+        time.sleep(1.0 / rate_hz)
+        if k % plan_every == plan_every - 1:
+            res, _ = soak.call(cli, GraspPlan.Request(method=MATRIX_METHOD, num_initial_grasps=MATRIX_K,
+                                                      seed=k + 1), 60)
+            plans += 1
+            plans_ok += int(res is not None and res.success)
+        if k % 100 == 99:
+            xs.append(k + 1)
+            ys.append(rss_mb(pid))
+    time.sleep(2.0)
+    received = soak.log_count(r'GPIS received', ['planner_node']) - received_before
+    half = len(xs) // 2
+    soak.node.destroy_publisher(pub)
+    soak.figures['models'] = {
+        'published': count, 'taken_by_planner': received, 'plans': plans, 'plans_ok': plans_ok,
+        'rss_first_mb': ys[0] if ys else float('nan'), 'rss_last_mb': ys[-1] if ys else float('nan'),
+        'rss_max_mb': max(ys) if ys else float('nan'), 'threads_at_end': threads(pid),
+        'rss_slope_after_warmup_mb_per_1000_models': slope_per_1000(xs[half:], ys[half:]),
+        'wall_clock_s': time.monotonic() - started,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description='a client process of the soak matrix')
+    sub = p.add_subparsers(dest='what', required=True)
+    c = sub.add_parser('client')
+    c.add_argument('--count', type=int, required=True)
+    c.add_argument('--mode', choices=('burst', 'loop'), required=True)
+    c.add_argument('--seed', type=int, required=True)
+    c.add_argument('--timeout', type=float, default=120.0)
+    c.add_argument('--retry', action='store_true', help='ask again like GraspPlannerClient')
+    a = p.parse_args(argv)
+    print(json.dumps(run_client(a.count, a.mode, a.seed, a.retry, a.timeout)), flush=True)
+    os._exit(0)  # a client process ends here: no teardown of the spinning executor (it would abort)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
