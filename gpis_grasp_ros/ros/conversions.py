@@ -118,7 +118,7 @@ def _on_plane(geometry: GridGeometry, xy: Any, height: float) -> np.ndarray:
 
 
 def grasp_height_for(grasp_height: float, object_height: float, jaw_height: float = DEFAULT_JAW_HEIGHT) -> float:
-    """Height (m) above the table, along its normal, at which the jaws close (issue 12, item 6).
+    """Height (m) above the table, along its normal, at which the jaws close.
 
     ``grasp_height >= 0``: that height. Negative (automatic): half the object's height above the table,
     clamped to the jaw geometry: at least half a jaw pad's height ``jaw_height`` (the pad centre at the

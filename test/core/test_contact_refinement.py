@@ -1,4 +1,4 @@
-"""Refinement invariance of P_F (issue 11, item 6): the contact model is converged at its defaults.
+"""Refinement invariance of P_F: the contact model is converged at its defaults.
 
 Contacts are exact zero crossings of the bilinear SDF along each face line (no march step), and
 the face lines are ``face_line_spacing_cells`` (0.25) apart with trapezoid weights. Halving the

@@ -546,7 +546,7 @@ def test_invalid_inputs_raise():
 
 
 # ----------------------------------------------------------------------------------------------
-# noise map -> GPIS: unobserved parts are uncertain, not confidently absent (issue 11, calibration)
+# noise map -> GPIS: unobserved parts are uncertain, not confidently absent
 
 def _rendered_scene(seed: int, trans_width: float = 0.02, n_frames: int = 6, size: int = 200):
     """Top-down Carmine-like frames: an opaque box (depth + colour) with a transparent part (colour only).

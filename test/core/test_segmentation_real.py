@@ -1,4 +1,4 @@
-"""Segmentation pieces made for real captures (issue 12): splitting touching objects, the seen-through
+"""Segmentation pieces made for real captures: splitting touching objects, the seen-through
 interior of a transparent target, the chromatic extension of a clear body, and the colour model's options
 (a shadow still is no evidence).
 

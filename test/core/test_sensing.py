@@ -283,7 +283,7 @@ def test_invalid_parameters():
         frames_from_clouds(np.full((1, 4, 4, 3), np.nan), np.zeros((1, 4, 4, 3), np.uint8))
 
 
-# ---------------------------------------------------------------------------------------- issue 12
+# ---------------------------------------------------------------------------------------- real captures
 def test_shadow_is_not_transparency():
     """Opaque box and its strong shadow on the table (darker, same chromaticity): no colour evidence and
     no uncertain cell in the shadow, while a tinted (transparent-like) patch still is uncertain."""

@@ -1,4 +1,4 @@
-"""3D grasp output (issue 12, item 6): jaw poses in the table plane at grasp_height, grasp orientation,
+"""3D grasp output: jaw poses in the table plane at grasp_height, grasp orientation,
 contact points on the mean shape and the opening width, for top-down and tilted grids."""
 
 from __future__ import annotations

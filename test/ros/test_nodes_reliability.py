@@ -1,4 +1,4 @@
-"""planner_node under load, faults and the standard tools (issue 14), launch-free.
+"""planner_node under load, faults and the standard tools, launch-free.
 
 Behaviour, not durations: every request is answered; a full queue answers at once with its length;
 timeouts, cancels and shutdown stop the computation (the worker takes the next request); an action

@@ -1,5 +1,5 @@
 """SIGINT/SIGTERM on the nodes run as processes: in-flight requests are answered 'shutting down',
-exit code 0, no error in the log (issue 14). Not timed: it asserts answered / exited / clean."""
+exit code 0, no error in the log. Not timed: it asserts answered / exited / clean."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Replay without loss (issue 14): the player waits for discovery of a late-started player's
+"""Replay without loss: the player waits for discovery of a late-started player's
 subscribers, publishes /clock, and segmentation_node makes one estimate per burst of frames,
 never mixing two passes."""
 

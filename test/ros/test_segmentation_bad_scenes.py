@@ -1,4 +1,4 @@
-"""segmentation_node on bad scenes (issue 12): no plane, plane edge-on, empty table, target point on no
+"""segmentation_node on bad scenes: no plane, plane edge-on, empty table, target point on no
 object → a latched reason on segmentation/status, nothing published, and the node keeps working."""
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ cell: variance of the cell's SDF value; NaN = not used for training), stamped wi
 frame's stamp and the camera frame. The grids lie in the table plane: their ``info.origin`` /
 geometry carry the full pose (position and orientation) in the camera frame.
 
-Perception for a tilted head camera (issue 12, :mod:`gpis_grasp_ros.core.sensing`): robust
+Perception for a tilted head camera (:mod:`gpis_grasp_ros.core.sensing`): robust
 table-plane fit (or ``table_plane``), region of interest (``roi_px`` / ``roi_table``), one
 ``target`` object isolated in the table plane, ``sensor_model`` noise. When no grid can be made
 (no plane, plane edge-on, empty table, target point on no object, target cut by the image border
