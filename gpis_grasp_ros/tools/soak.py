@@ -49,6 +49,8 @@ from typing import Any
 
 import numpy as np
 
+from gpis_grasp_ros.tools.soak_load import rss_mb
+
 ROOT = Path(__file__).resolve().parents[2]
 NODES = {
     'segmentation_node': ['-p', 'input_reliability:=reliable'],
@@ -89,15 +91,6 @@ def start_node(soak: Soak, name: str, extra: list[str], suffix: str = '') -> Non
 
 def _percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float('nan')
-
-
-def _peak_rss_mb(pid: int) -> float:
-    try:
-        text = Path(f'/proc/{pid}/status').read_text()
-    except OSError:
-        return float('nan')
-    m = re.search(r'VmHWM:\s+(\d+) kB', text)
-    return int(m.group(1)) / 1024 if m else float('nan')
 
 
 class Soak:
@@ -261,7 +254,7 @@ class Soak:
             'rejected_logged': self.log_count(r'\bignoring\b') - rejected_before,
             'node_deaths': len(deaths), 'guard_exceptions': self.log_count(r'unexpected \w+'),
             'memory_errors': self.log_count('MemoryError'),
-            'peak_rss_mb': {n: round(_peak_rss_mb(p.pid), 1) for n, p in self.procs.items()},
+            'peak_rss_mb': {n: round(rss_mb(p.pid, 'VmHWM'), 1) for n, p in self.procs.items()},
         }
         for pub in pubs.values():
             self.node.destroy_publisher(pub)

@@ -38,13 +38,13 @@ MATRIX_WORKERS = (1, 2, 4)
 MATRIX_QUEUES = (32, 128, 1024)
 
 
-def rss_mb(pid: int) -> float:
-    """Resident set size of ``pid`` (MB)."""
+def rss_mb(pid: int, field: str = 'VmRSS') -> float:
+    """A memory figure of ``pid`` from /proc (MB): ``VmRSS`` resident now, ``VmHWM`` its peak; NaN when gone."""
     try:
         text = Path(f'/proc/{pid}/status').read_text()
     except OSError:
         return float('nan')
-    m = re.search(r'VmRSS:\s+(\d+) kB', text)
+    m = re.search(rf'{field}:\s+(\d+) kB', text)
     return int(m.group(1)) / 1024 if m else float('nan')
 
 

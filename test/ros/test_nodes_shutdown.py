@@ -33,15 +33,21 @@ def _start(module: str, domain: int, *ros_args: str) -> subprocess.Popen:
                             env=env, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+def _probe_with_model(ros: RosHarness):
+    """A probe node that has published bag H's GPIS model (latched; the node keeps its publisher)."""
+    probe = ros.node('probe')
+    pub = probe.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
+    post, _ = posterior_from_scene(load_bag(next((ROOT / 'bags').glob('H_*.mcap')), frames=3))
+    pub.publish(messages.posterior_to_gpis_model(post, messages.header(F, 1, 'cam'), F))
+    return probe
+
+
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
 def test_signal_during_a_plan_answers_the_caller_and_exits_cleanly(sig):
     ros = RosHarness()
     proc = _start('planner_node', ros.domain_id, '-p', 'num_shape_samples:=100000')
     try:
-        probe = ros.node('probe')
-        pub = probe.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
-        post, _ = posterior_from_scene(load_bag(next((ROOT / 'bags').glob('H_*.mcap')), frames=3))
-        pub.publish(messages.posterior_to_gpis_model(post, messages.header(F, 1, 'cam'), F))
+        probe = _probe_with_model(ros)
         cli = probe.create_client(GraspPlan, 'plan_grasp')
         assert cli.wait_for_service(timeout_sec=30.0)
         lines: list[str] = []
@@ -73,10 +79,7 @@ def test_sigint_during_an_action_goal_aborts_it_with_the_reason():
     ros = RosHarness()
     proc = _start('planner_node', ros.domain_id, '-p', 'num_shape_samples:=100000')
     try:
-        probe = ros.node('probe')
-        pub = probe.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
-        post, _ = posterior_from_scene(load_bag(next((ROOT / 'bags').glob('H_*.mcap')), frames=3))
-        pub.publish(messages.posterior_to_gpis_model(post, messages.header(F, 1, 'cam'), F))
+        probe = _probe_with_model(ros)
         client = ActionClient(probe, PlanGrasp, 'plan_grasp')
         assert client.wait_for_server(timeout_sec=30.0)
         lines: list[str] = []
