@@ -395,9 +395,14 @@ def _check_target(target_px: np.ndarray, target_xy: np.ndarray, target_raster: n
             padded = np.pad(target_raster.astype(np.uint8), 1)
             inscribed = 2.0 * float(cv2.distanceTransform(padded, cv2.DIST_L2, 5).max()) * raster_res
             if inscribed > params.max_opening_m:
+                (x0, y0), (x1, y1) = target_xy.min(axis=0), target_xy.max(axis=0)
                 raise ValueError(f'the target is {width * 1000:.0f} mm wide in its narrowest direction and no part of '
                                  f'it is narrower than {inscribed * 1000:.0f} mm: more than the gripper opening '
-                                 f'max_opening_m = {params.max_opening_m * 1000:.0f} mm')
+                                 f'max_opening_m = {params.max_opening_m * 1000:.0f} mm. If it is several objects '
+                                 'touching with no step in height, normal or neck between them to separate them, '
+                                 'select the one to grasp with roi_table (x_min, y_min, x_max, y_max, m in the table '
+                                 f'frame; this target spans x {x0:.3f} .. {x1:.3f}, y {y0:.3f} .. {y1:.3f}): the '
+                                 'evidence outside it is ignored')
 
 
 def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJECT_HEIGHT_PERCENTILE,

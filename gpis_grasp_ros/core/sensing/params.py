@@ -36,6 +36,11 @@ HIDDEN_SUBCELLS = 8  # points per cell side at which the hidden part of a cell i
 CHROMA_CORE_PX = 7  # a region seen through a clear body holds a disc this wide (px); an edge band does not
 
 
+# The table that supports the target (table.target_support): its colour model is learnt within this radius
+SUPPORT_RADIUS_M = 0.15  # of the target point in the table plane (m)
+SUPPORT_MIN_PX = 500  # ... when at least this many plane inliers lie that close (else all of them)
+
+
 def _box(value: Sequence[float] | None, name: str) -> tuple[float, float, float, float] | None:
     if value is None:
         return None

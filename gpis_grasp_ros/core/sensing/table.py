@@ -9,7 +9,7 @@ import numpy as np
 
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
-from gpis_grasp_ros.core.sensing.params import SensingParams
+from gpis_grasp_ros.core.sensing.params import SUPPORT_MIN_PX, SUPPORT_RADIUS_M, SensingParams
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 
@@ -22,6 +22,7 @@ class TableFit(NamedTuple):
     band: np.ndarray  # (H, W) m, plane inlier band
     inlier: np.ndarray  # (H, W) bool, pixels on the plane
     h_thr: float  # m, depth-evidence height threshold
+    support: np.ndarray  # (H, W) bool, the inliers of the table around the target (colour model)
 
 
 class Measurement(NamedTuple):
@@ -82,7 +83,38 @@ def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
                          '(check table_plane / table_depth_m, or the depth image)')
     rms = float(np.sqrt(np.mean(meas.height[inlier] ** 2)))
     h_thr = max(params.height_threshold, 2.0 * rms)
-    return TableFit(table, rays, ray_n, band, inlier, h_thr), meas
+    support = target_support(inlier, points, table, rays, params)
+    return TableFit(table, rays, ray_n, band, inlier, h_thr, support), meas
+
+
+def target_support(inlier: np.ndarray, points: np.ndarray, table: TableFrame, rays: np.ndarray,
+                   params: SensingParams) -> np.ndarray:
+    """The plane's inliers of the table that supports the target: those within ``SUPPORT_RADIUS_M`` of the
+    target point in the table plane (``target`` ``pixel``: where its ray meets the plane; ``table``: the
+    point), all inliers for the other targets or when fewer than ``SUPPORT_MIN_PX`` lie that close.
+
+    The plane may hold several surfaces - a board on a table, a sheet on a cloth, the world beyond the
+    table's edge flattened into the plane by a depth filter - and the colour the objects stand out from is
+    that of the surface under them; a crop of the frame around the target must not change it."""
+    if params.target not in ('pixel', 'table') or SUPPORT_RADIUS_M <= 0:
+        return inlier
+    if params.target == 'pixel':
+        h, w = inlier.shape
+        u = int(np.clip(round(params.target_point[0]), 0, w - 1))
+        v = int(np.clip(round(params.target_point[1]), 0, h - 1))
+        hit_pt, hit = table.ray_intersection(rays[v, u])
+        if not bool(hit):
+            return inlier
+        point = table.to_table(hit_pt)[0]
+    else:
+        point = np.asarray(params.target_point, dtype=np.float64)
+    xy = table.to_table(points[inlier])[0]
+    near = np.linalg.norm(xy - point, axis=-1) <= SUPPORT_RADIUS_M
+    if near.sum() < SUPPORT_MIN_PX:
+        return inlier
+    out = np.zeros_like(inlier)
+    out[inlier] = near
+    return out
 
 
 def pixel_footprint(z_mean: np.ndarray, fit: TableFit, intrinsics: CameraIntrinsics) -> float:

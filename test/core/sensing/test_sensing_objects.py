@@ -111,3 +111,34 @@ def test_minimum_width_object_height_and_nearest_pixel():
     dist, near = nearest_pixel(mask)
     assert dist[1, 2] == 0 and dist[4, 6] == pytest.approx(5.0, abs=0.05)
     assert (near == [1, 2]).all()
+
+
+@pytest.mark.parametrize('tilt', [0.0, 40.0])
+def test_an_inseparable_cluster_wider_than_the_gripper_is_refused_with_how_to_select_a_part(tilt):
+    """Two 7 x 12 x 3 cm boxes of one colour side by side (14 x 12 cm, no step, no neck between them) are one
+    object too wide for the 9 cm opening: refused with the reason and the roi_table to select one by; the
+    roi_table of one box's half gives that box alone (its pixels, no more than a tenth of the other's)."""
+    import re
+
+    from gpis_grasp_ros.core.sensing import segment_frames
+    from support.tilted_scene import Box, TiltedScene
+
+    colour = (40.0, 90.0, 200.0)
+    scene = TiltedScene(tilt, boxes=[Box(-0.035, 0.0, 0.035, 0.06, 0.03, rgb=colour),
+                                     Box(0.035, 0.0, 0.035, 0.06, 0.03, rgb=colour)])
+    rgb, depth, label = scene.frames(2, seed=3)
+    vv, uu = np.nonzero(label == 1)
+    params = SensingParams(target='pixel', target_point=(float(np.median(uu)), float(np.median(vv))))
+    with pytest.raises(ValueError, match='wide in its narrowest direction') as err:
+        segment_frames(rgb, depth, scene.intrinsics, params)
+    msg = str(err.value)
+    assert 'roi_table' in msg and 'touching' in msg
+    span = re.search(r'spans x (-?[\d.]+) \.\. (-?[\d.]+), y (-?[\d.]+) \.\. (-?[\d.]+)', msg)
+    x0, x1, y0, y1 = (float(g) for g in span.groups())
+    assert x1 - x0 == pytest.approx(0.14, abs=0.01) and y1 - y0 == pytest.approx(0.12, abs=0.01 + 0.03 * tilt / 40)
+    # the table frame's x is the camera's x projected, as the renderer's: box 1 is the half at lower x
+    mid = 0.5 * (x0 + x1)
+    res = segment_frames(rgb, depth, scene.intrinsics, SensingParams(
+        target='pixel', target_point=params.target_point, roi_table=(x0 - 0.01, y0 - 0.01, mid - 0.002, y1 + 0.01)))
+    assert res.object_mask[label == 1].mean() > 0.8
+    assert res.object_mask[label == 2].mean() < 0.1

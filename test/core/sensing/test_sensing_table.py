@@ -10,7 +10,7 @@ import pytest
 from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.core.sensing.camera import average_frames
 from gpis_grasp_ros.core.sensing.table import fit_table, pixel_footprint
-from support.tilted_scene import Box, TiltedScene
+from support.tilted_scene import TABLE_RGB, Box, TiltedScene
 
 
 @pytest.mark.parametrize('tilt', [0.0, 35.0, 55.0])
@@ -51,3 +51,56 @@ def test_too_few_plane_pixels_are_refused():
     params = SensingParams(table_depth_m=0.3)  # a given plane far from the depth seen
     with pytest.raises(ValueError, match='lie on the table plane'):
         fit_table(average_frames(rgb, depth, params), scene.intrinsics, params)
+
+
+def _board_scene(tilt: float) -> TiltedScene:
+    """A board (the table's colour, 48 x 40 cm) in one plane with a surround of other colours beyond its edge
+    (bins, cloth, a depth filter's flattened world), a 6 x 4 x 3 cm box at its centre: the board is about a
+    quarter of the plane's pixels."""
+    hx, hy, far = 0.24, 0.20, 2.0
+    colours = [(230.0, 230.0, 235.0), (200.0, 60.0, 150.0), (40.0, 40.0, 50.0), (60.0, 120.0, 230.0)]
+    strips = [(-far, -far, far, -hy), (-far, hy, far, far), (-far, -hy, -hx, hy), (hx, -hy, far, hy)]
+    prints = [(x0, y0, x1, y1, colours[k]) for k, (x0, y0, x1, y1) in enumerate(strips)]
+    return TiltedScene(tilt, boxes=[Box(0.0, 0.0, 0.03, 0.02, 0.03, rgb=(150.0, 60.0, 40.0))], prints=prints)
+
+
+@pytest.mark.parametrize('tilt', [0.0, 30.0, 50.0])
+def test_the_colour_model_is_the_table_under_the_target_whole_frame_or_cropped(tilt):
+    """The plane holds the board and, beyond its edge, three times its area of other colours: the colour
+    model is learnt on the inliers around the target point (SUPPORT_RADIUS_M), so the whole frame gives the
+    target, the table colour and the threshold of the frame cropped to the board, and the box's footprint."""
+    from gpis_grasp_ros.core.sensing import segment_frames
+    from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
+
+    scene = _board_scene(tilt)
+    rgb, depth, label = scene.frames(3, seed=4)
+    corners = scene.to_camera(np.array([[-0.24, -0.2], [0.24, -0.2], [0.24, 0.2], [-0.24, 0.2]]))
+    intr = scene.intrinsics
+    u = intr.fx * corners[:, 0] / corners[:, 2] + intr.cx
+    v = intr.fy * corners[:, 1] / corners[:, 2] + intr.cy
+    u0, v0 = max(0, int(u.min()) + 2), max(0, int(v.min()) + 2)
+    u1, v1 = min(intr.width, int(u.max()) - 2), min(intr.height, int(v.max()) - 2)
+    vv, uu = np.nonzero(label == 1)
+    target = (float(np.median(uu)), float(np.median(vv)))
+    whole = segment_frames(rgb, depth, intr, SensingParams(target='pixel', target_point=target))
+    crop_intr = CameraIntrinsics(intr.fx, intr.fy, intr.cx - u0, intr.cy - v0, u1 - u0, v1 - v0)
+    crop = segment_frames(rgb[:, v0:v1, u0:u1], depth[:, v0:v1, u0:u1], crop_intr,
+                          SensingParams(target='pixel', target_point=(target[0] - u0, target[1] - v0)))
+    assert np.allclose(whole.table_color, crop.table_color, atol=3.0)
+    assert whole.color_threshold == pytest.approx(crop.color_threshold, rel=0.1)
+    assert np.abs(whole.table_color - TABLE_RGB).max() < 5.0
+    assert whole.object_mask[label == 1].mean() > 0.9 and crop.object_mask[label[v0:v1, u0:u1] == 1].mean() > 0.9
+    assert whole.object_mask.sum() == pytest.approx(crop.object_mask.sum(), rel=0.05)
+    assert abs(int(whole.train_mask.sum()) - int(crop.train_mask.sum())) <= 3
+    # the same target pixels seen in the whole frame as in the crop
+    assert (whole.object_mask[v0:v1, u0:u1] ^ crop.object_mask).sum() <= 0.03 * crop.object_mask.sum()
+
+
+def test_without_a_target_point_the_colour_model_uses_the_whole_plane():
+    """``largest`` has no point to centre the support on: every inlier trains the colour model."""
+    scene = _board_scene(30.0)
+    rgb, depth, _ = scene.frames(2, seed=1)
+    params = SensingParams()
+    frames = average_frames(rgb, depth, params)
+    fit, _ = fit_table(frames, scene.intrinsics, params)
+    assert np.array_equal(fit.support, fit.inlier)
