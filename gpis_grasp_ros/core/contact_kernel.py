@@ -180,22 +180,26 @@ def _line_crossing(grid, px, py, ux, uy, window, lip, f_start, res, positive, t_
     return 0.0, False
 
 
+@njit(cache=True, nogil=True, inline='always')
+def grid_border_positive(grid):
+    """Every node on the border of one padded grid (Hp, Wp) is > 0 (:func:`border_positive`)."""
+    hp, wp = grid.shape
+    for i in range(hp):
+        if grid[i, 0] <= 0 or grid[i, wp - 1] <= 0:
+            return False
+    for j in range(wp):
+        if grid[0, j] <= 0 or grid[hp - 1, j] <= 0:
+            return False
+    return True
+
+
 @njit(cache=True, nogil=True)
 def border_positive(grids):
     """Per padded grid (B, Hp, Wp): every node on its border is > 0 (then the extrapolated SDF is
     positive everywhere off the grid: see the module docstring)."""
-    b, hp, wp = grids.shape
-    out = np.ones(b, dtype=np.bool_)
-    for k in range(b):
-        for i in range(hp):
-            if grids[k, i, 0] <= 0 or grids[k, i, wp - 1] <= 0:
-                out[k] = False
-                break
-        if out[k]:
-            for j in range(wp):
-                if grids[k, 0, j] <= 0 or grids[k, hp - 1, j] <= 0:
-                    out[k] = False
-                    break
+    out = np.ones(grids.shape[0], dtype=np.bool_)
+    for k in range(grids.shape[0]):
+        out[k] = grid_border_positive(grids[k])
     return out
 
 
@@ -246,6 +250,26 @@ def first_crossing(grid, px, py, ux, uy, length, lipschitz=0.0, f_start=math.nan
     return _walk(grid, px, py, ux, uy, length)
 
 
+@njit(cache=True, nogil=True, inline='always')
+def grid_lipschitz(grid):
+    """The Lipschitz constant (m per cell) of one padded grid's (Hp, Wp) bilinear interpolant
+    (:func:`lipschitz_bounds`)."""
+    hp, wp = grid.shape
+    best = 0.0
+    for i in range(hp - 1):
+        for j in range(wp - 1):
+            top = grid[i, j + 1] - grid[i, j]
+            bottom = grid[i + 1, j + 1] - grid[i + 1, j]
+            left = grid[i + 1, j] - grid[i, j]
+            right = grid[i + 1, j + 1] - grid[i, j + 1]
+            # the largest of the 4 corners' squared norms: max(top², bottom²) + max(left², right²) (rounding is
+            # monotonic, so this is the largest of the 4 rounded sums, bit for bit); branch-free, it vectorises
+            t2, b2, l2, r2 = top * top, bottom * bottom, left * left, right * right
+            corner = (t2 if t2 > b2 else b2) + (l2 if l2 > r2 else r2)
+            best = corner if corner > best else best
+    return math.sqrt(best) * (1.0 + 1e-9)
+
+
 @njit(cache=True, nogil=True)
 def lipschitz_bounds(grids):
     """Per grid (B, Hp, Wp): the Lipschitz constant (m per cell) of its bilinear interpolant.
@@ -255,19 +279,9 @@ def lipschitz_bounds(grids):
     along the two cell edges meeting there. The maximum over all cells and corners is the exact
     bound (f is continuous across cells), ~1 cell of SDF per cell for a true SDF.
     """
-    b, hp, wp = grids.shape
-    out = np.zeros(b)
-    for k in range(b):
-        best = 0.0
-        for i in range(hp - 1):
-            for j in range(wp - 1):
-                top = grids[k, i, j + 1] - grids[k, i, j]
-                bottom = grids[k, i + 1, j + 1] - grids[k, i + 1, j]
-                left = grids[k, i + 1, j] - grids[k, i, j]
-                right = grids[k, i + 1, j + 1] - grids[k, i, j + 1]
-                best = max(best, top * top + left * left, top * top + right * right,
-                           bottom * bottom + left * left, bottom * bottom + right * right)
-        out[k] = math.sqrt(best) * (1.0 + 1e-9)
+    out = np.zeros(grids.shape[0])
+    for k in range(grids.shape[0]):
+        out[k] = grid_lipschitz(grids[k])
     return out
 
 
