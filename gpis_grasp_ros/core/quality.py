@@ -55,10 +55,6 @@ from gpis_grasp_ros.core.sdf_bank import SdfBank
 #: Number of trials (grasps × samples) evaluated at once by :func:`probability_force_closure`.
 MAX_TRIALS_PER_CHUNK = 1 << 13
 
-#: Float32 shape samples drawn and set up at a time by :func:`draw_shape_samples` (their normals, deviations
-#: and grids stay in a core's cache: ~2 ms less at S = 1000, M = 25).
-SAMPLE_CHUNK = 125
-
 _OPPOSITE = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
 
 
@@ -250,12 +246,9 @@ def draw_shape_samples(posterior: GpisPosterior, n: int, rng: np.random.Generato
     The random stream is :meth:`GpisPosterior.sample`'s (then the perturbations); ``precision`` is that of
     the product L eps (:meth:`GpisPosterior.sample_deviations`; float32 by default: the samples differ from
     the float64 ones by ~1e-9 m and the force-closure counts by a trial in thousands, docs/speed.md), the
-    mean is added in float64; float32 samples are drawn and set up :data:`SAMPLE_CHUNK` at a time (in cache).
-    ``np.float64`` gives exactly ``SdfBank(posterior.sample(n, rng))`` (one GEMM, as :meth:`~GpisPosterior.sample`).
+    mean is added in float64. ``np.float64`` gives exactly ``SdfBank(posterior.sample(n, rng))``.
     """
-    single = np.dtype(precision) == np.float32
-    bank = SdfBank.from_deviations(posterior.mean, lambda m: posterior.sample_deviations(m, rng, precision), n,
-                                   posterior.geometry, chunk=SAMPLE_CHUNK if single else None)
+    bank = SdfBank.from_deviations(posterior.mean, posterior.sample_deviations(n, rng, precision), posterior.geometry)
     eps = rng.standard_normal((n, 2, 2))
     if rho is None:
         rho = torque_scale(posterior.mean, posterior.geometry)

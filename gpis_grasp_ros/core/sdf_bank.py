@@ -11,7 +11,6 @@ lookup (a Monte-Carlo bank never needs them).
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
 
 import numpy as np
 from numba import njit
@@ -223,26 +222,21 @@ class SdfBank:
         self._cells_per_grid = geometry.height * geometry.width
 
     @classmethod
-    def from_deviations(cls, mean: np.ndarray, draw: Callable[[int], np.ndarray], n: int, geometry: GridGeometry,
-                        chunk: int | None = None, pad_cells: int = 6) -> SdfBank:
-        """The bank of ``n`` grids ``mean + deviation``: ``mean`` (H, W) m, ``draw(m)`` the next ``m`` deviations
-        ``(m, H*W)`` row-major (float32 or float64, e.g. :meth:`GpisPosterior.sample_deviations`), asked for in
-        chunks of ``chunk`` (None: all at once) so that each chunk is summed in float64 and set up while it is
-        in cache. With float64 deviations drawn at once the bank equals ``SdfBank(mean + deviations)`` bit for
-        bit (its ``sdfs`` are a view of the padded grids' interior, where an exact -0.0 reads +0.0)."""
+    def from_deviations(cls, mean: np.ndarray, deviations: np.ndarray, geometry: GridGeometry,
+                        pad_cells: int = 6) -> SdfBank:
+        """The bank of the grids ``mean + deviations[k]``: ``mean`` (H, W) m, ``deviations`` (B, H*W) row-major
+        (float32 or float64, e.g. :meth:`GpisPosterior.sample_deviations`), each grid summed in float64 within the
+        compiled set-up pass. With float64 deviations the bank equals ``SdfBank(mean + deviations)`` bit for bit
+        (its ``sdfs`` are a view of the padded grids' interior, where an exact -0.0 reads +0.0)."""
         mean = np.ascontiguousarray(mean, dtype=np.float64)
-        if mean.shape != geometry.shape:
-            raise ValueError(f'mean {mean.shape} does not match the grid {geometry.shape}')
-        bank = cls(mean, geometry, pad_cells=pad_cells, _n_deviations=n)
+        deviations = np.ascontiguousarray(deviations)
+        if mean.shape != geometry.shape or deviations.ndim != 2 or deviations.shape[1] != mean.size:
+            raise ValueError(f'mean {mean.shape} and deviations {deviations.shape} do not match the grid '
+                             f'{geometry.shape}')
+        bank = cls(mean, geometry, pad_cells=pad_cells, _n_deviations=deviations.shape[0])
         ic, jc, dist = _pad_distances(geometry.height, geometry.width, bank.pad, geometry.resolution)
-        step = n if chunk is None else max(1, int(chunk))
-        for s0 in range(0, n, step):
-            s1 = min(s0 + step, n)
-            dev = np.ascontiguousarray(draw(s1 - s0))
-            if dev.shape != (s1 - s0, mean.size):
-                raise ValueError(f'draw({s1 - s0}) gave deviations of shape {dev.shape}, not {(s1 - s0, mean.size)}')
-            _prepare_deviations(mean, dev, ic, jc, dist, float(geometry.resolution), bank.padded[s0:s1],
-                                bank.gradient_grids[s0:s1], bank.lipschitz[s0:s1], bank.border_positive[s0:s1])
+        _prepare_deviations(mean, deviations, ic, jc, dist, float(geometry.resolution), bank.padded,
+                            bank.gradient_grids, bank.lipschitz, bank.border_positive)
         return bank
 
     def _build_records(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:

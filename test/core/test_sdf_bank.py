@@ -119,22 +119,20 @@ def test_lipschitz_bounds_and_border_tests_built_with_the_grids(shape, pad) -> N
     assert SdfBank(corner, g, pad_cells=pad).border_positive.tolist() == [True, False, True]
 
 
-@pytest.mark.parametrize('chunk', [None, 7])
-def test_a_bank_from_deviations_is_the_bank_of_mean_plus_deviations(chunk) -> None:
+def test_a_bank_from_deviations_is_the_bank_of_mean_plus_deviations() -> None:
     """float64 deviations: the same padded grids, gradients, bounds and border tests as ``SdfBank(mean + dev)``
-    (bit for bit), whether drawn at once or in chunks; float32 deviations: the same, of their float64 values."""
+    (bit for bit); float32 deviations: the same, of their float64 values."""
     g = GridGeometry(-0.01, 0.02, 0.005, 9, 6)
     rng = np.random.default_rng(4)
     mean = rng.normal(0.01, 0.01, g.shape)
     for dtype in (np.float64, np.float32):
         dev = rng.normal(0.0, 0.003, (30, mean.size)).astype(dtype)
-        it = iter(np.array_split(dev, range(chunk, 30, chunk)) if chunk else [dev])
-        bank = SdfBank.from_deviations(mean, lambda m, it=it: next(it), 30, g, chunk=chunk)
+        bank = SdfBank.from_deviations(mean, dev, g)
         ref = SdfBank(mean[None] + dev.astype(np.float64).reshape(30, *g.shape), g)
         for name in ('padded', 'gradient_grids', 'lipschitz', 'border_positive', 'sdfs'):
             np.testing.assert_array_equal(getattr(bank, name), getattr(ref, name), err_msg=name)
-    with pytest.raises(ValueError, match='deviations of shape'):
-        SdfBank.from_deviations(mean, lambda m: np.zeros((m, 3)), 4, g)
+    with pytest.raises(ValueError, match='do not match the grid'):
+        SdfBank.from_deviations(mean, np.zeros((4, 3)), g)
 
 
 def test_float64_shape_samples_are_the_posterior_samples_and_float32_ones_round_them() -> None:
