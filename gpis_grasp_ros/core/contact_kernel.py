@@ -453,6 +453,36 @@ def exact_contacts(grids, lipschitz, positive, index, ax, ay, ux, uy, length, of
             contacts[side, t, 1] = ay[t] + o * perp_y + tm * vy
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _cell_of(contacts, side, t, h, w):
+    """Cell (i, j) and offsets (fx, fy) of a contact (unpadded cells, clamped to the grid); i = -1 when NaN."""
+    u = contacts[side, t, 0]
+    v = contacts[side, t, 1]
+    if not (math.isfinite(u) and math.isfinite(v)):
+        return -1, 0, 0.0, 0.0
+    u = min(max(u, 0.0), w - 1.0)
+    v = min(max(v, 0.0), h - 1.0)
+    j = min(int(u), w - 2)
+    i = min(int(v), h - 2)
+    return i, j, u - j, v - i
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _interpolate(f00, f01, f10, f11, fx, fy):
+    return f00 + (f01 - f00) * fx + fy * ((f10 - f00) + (f11 - f01 - f10 + f00) * fx)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _normalise(gx, gy, min_norm, out, side, t):
+    norm = math.sqrt(gx * gx + gy * gy)
+    if norm > min_norm:
+        out[side, t, 0] = gx / norm
+        out[side, t, 1] = gy / norm
+    else:
+        out[side, t, 0] = 0.0
+        out[side, t, 1] = 0.0
+
+
 @njit(cache=True, nogil=True)
 def unit_normals(gradients, index, contacts, min_norm, out):
     """Unit outward normals ``out`` (2, T, 2) at ``contacts`` (2, T, 2) (unpadded cells, clamped to
@@ -462,35 +492,59 @@ def unit_normals(gradients, index, contacts, min_norm, out):
     w = gradients.shape[2]
     for side in range(2):
         for t in range(contacts.shape[1]):
-            u = contacts[side, t, 0]
-            v = contacts[side, t, 1]
-            if not (math.isfinite(u) and math.isfinite(v)):
+            i, j, fx, fy = _cell_of(contacts, side, t, h, w)
+            if i < 0:
                 out[side, t, 0] = 0.0
                 out[side, t, 1] = 0.0
                 continue
-            u = min(max(u, 0.0), w - 1.0)
-            v = min(max(v, 0.0), h - 1.0)
-            j = min(int(u), w - 2)
-            i = min(int(v), h - 2)
-            fx = u - j
-            fy = v - i
-            b = index[t]
-            gx = 0.0
-            gy = 0.0
-            for k in range(2):
-                f00 = gradients[b, i, j, k]
-                f01 = gradients[b, i, j + 1, k]
-                f10 = gradients[b, i + 1, j, k]
-                f11 = gradients[b, i + 1, j + 1, k]
-                val = f00 + (f01 - f00) * fx + fy * ((f10 - f00) + (f11 - f01 - f10 + f00) * fx)
-                if k == 0:
-                    gx = val
-                else:
-                    gy = val
-            norm = math.sqrt(gx * gx + gy * gy)
-            if norm > min_norm:
-                out[side, t, 0] = gx / norm
-                out[side, t, 1] = gy / norm
-            else:
+            g = gradients[index[t]]
+            gx = _interpolate(g[i, j, 0], g[i, j + 1, 0], g[i + 1, j, 0], g[i + 1, j + 1, 0], fx, fy)
+            gy = _interpolate(g[i, j, 1], g[i, j + 1, 1], g[i + 1, j, 1], g[i + 1, j + 1, 1], fx, fy)
+            _normalise(gx, gy, min_norm, out, side, t)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _difference_x(grid, pad, w, i, j, resolution):
+    """∂f/∂x at node (i, j) of the unpadded grid inside padded ``grid``, by ``np.gradient``'s formulas."""
+    r = pad + i
+    if j == 0:
+        return (grid[r, pad + 1] - grid[r, pad]) / resolution
+    if j == w - 1:
+        return (grid[r, pad + w - 1] - grid[r, pad + w - 2]) / resolution
+    return (grid[r, pad + j + 1] - grid[r, pad + j - 1]) / (2.0 * resolution)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _difference_y(grid, pad, h, i, j, resolution):
+    """∂f/∂y at node (i, j), as :func:`_difference_x`."""
+    c = pad + j
+    if i == 0:
+        return (grid[pad + 1, c] - grid[pad, c]) / resolution
+    if i == h - 1:
+        return (grid[pad + h - 1, c] - grid[pad + h - 2, c]) / resolution
+    return (grid[pad + i + 1, c] - grid[pad + i - 1, c]) / (2.0 * resolution)
+
+
+@njit(cache=True, nogil=True)
+def unit_normals_from_values(grids, pad, resolution, index, contacts, min_norm, out):
+    """:func:`unit_normals` with the gradient grids of the finite differences of the SDFs themselves, computed
+    only at the 4 nodes around each contact from the padded grids ``grids`` (B, Hp, Wp) (their interior is the
+    SDF: the same values and formulas as the bank's gradient grids, so the same normals)."""
+    h = grids.shape[1] - 2 * pad
+    w = grids.shape[2] - 2 * pad
+    for side in range(2):
+        for t in range(contacts.shape[1]):
+            i, j, fx, fy = _cell_of(contacts, side, t, h, w)
+            if i < 0:
                 out[side, t, 0] = 0.0
                 out[side, t, 1] = 0.0
+                continue
+            g = grids[index[t]]
+            res = resolution
+            gx = _interpolate(_difference_x(g, pad, w, i, j, res), _difference_x(g, pad, w, i, j + 1, res),
+                              _difference_x(g, pad, w, i + 1, j, res), _difference_x(g, pad, w, i + 1, j + 1, res),
+                              fx, fy)
+            gy = _interpolate(_difference_y(g, pad, h, i, j, res), _difference_y(g, pad, h, i, j + 1, res),
+                              _difference_y(g, pad, h, i + 1, j, res), _difference_y(g, pad, h, i + 1, j + 1, res),
+                              fx, fy)
+            _normalise(gx, gy, min_norm, out, side, t)

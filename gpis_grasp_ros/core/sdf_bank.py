@@ -57,43 +57,51 @@ def _pad_distances(h: int, w: int, pad: int, resolution: float) -> tuple[np.ndar
 
 
 @njit(cache=True, nogil=True, inline='always')
-def _pad_and_gradient(sdf, ic, jc, dist, resolution, padded, gradients):
+def _pad_grid(sdf, ic, jc, dist, padded):
     """``padded`` (Hp, Wp) = the value of ``sdf`` (H, W) at the nearest node (``ic``, ``jc``) + ``dist``
-    (:func:`pad_extrapolated`, its numpy reference), ``gradients`` (H, W, 2) = ∂f/∂x, ∂f/∂y by the
-    formulas of ``np.gradient`` (central differences inside, one-sided on the border; the same
-    floating-point operations, so the same bits)."""
-    h, w = sdf.shape
+    (:func:`pad_extrapolated`, its numpy reference)."""
     hp, wp = dist.shape
-    two = 2.0 * resolution
     for i in range(hp):
         for j in range(wp):
             padded[i, j] = sdf[ic[i], jc[j]] + dist[i, j]
-    for i in range(h):  # the border cases outside the inner loops, so that these vectorise
-        gradients[i, 0, 0] = (sdf[i, 1] - sdf[i, 0]) / resolution
-        for j in range(1, w - 1):
-            gradients[i, j, 0] = (sdf[i, j + 1] - sdf[i, j - 1]) / two
-        gradients[i, w - 1, 0] = (sdf[i, w - 1] - sdf[i, w - 2]) / resolution
-        if i == 0 or i == h - 1:
-            lo, hi, step = (0, 1, resolution) if i == 0 else (h - 2, h - 1, resolution)
-        else:
-            lo, hi, step = i - 1, i + 1, two
-        for j in range(w):
-            gradients[i, j, 1] = (sdf[hi, j] - sdf[lo, j]) / step
 
 
 @njit(cache=True, nogil=True)
-def _prepare(sdfs, ic, jc, dist, resolution, padded, gradients, lipschitz, positive):
-    """Per grid of ``sdfs`` (B, H, W): padded grid and gradients (:func:`_pad_and_gradient`) and, while the
-    padded grid is in cache, its Lipschitz bound and border test (:func:`contact_kernel.lipschitz_bounds`,
+def _finite_differences(sdfs, resolution, gradients):
+    """``gradients`` (B, H, W, 2) = ∂f/∂x, ∂f/∂y of grids ``sdfs`` (B, H, W) by the formulas of ``np.gradient``
+    (central differences inside, one-sided on the border; the same floating-point operations, so the same
+    bits; :func:`contact_kernel.unit_normals_from_values` evaluates the same formulas at single nodes)."""
+    b, h, w = sdfs.shape
+    two = 2.0 * resolution
+    for k in range(b):
+        sdf = sdfs[k]
+        out = gradients[k]
+        for i in range(h):  # the border cases outside the inner loops, so that these vectorise
+            out[i, 0, 0] = (sdf[i, 1] - sdf[i, 0]) / resolution
+            for j in range(1, w - 1):
+                out[i, j, 0] = (sdf[i, j + 1] - sdf[i, j - 1]) / two
+            out[i, w - 1, 0] = (sdf[i, w - 1] - sdf[i, w - 2]) / resolution
+            if i == 0 or i == h - 1:
+                lo, hi, step = (0, 1, resolution) if i == 0 else (h - 2, h - 1, resolution)
+            else:
+                lo, hi, step = i - 1, i + 1, two
+            for j in range(w):
+                out[i, j, 1] = (sdf[hi, j] - sdf[lo, j]) / step
+
+
+@njit(cache=True, nogil=True)
+def _prepare(sdfs, ic, jc, dist, padded, lipschitz, positive):
+    """Per grid of ``sdfs`` (B, H, W): its padded grid (:func:`_pad_grid`) and, while that is in cache, its
+    Lipschitz bound and border test (:func:`contact_kernel.lipschitz_bounds`,
     :func:`contact_kernel.border_positive`: the same operations)."""
     for k in range(sdfs.shape[0]):
-        _pad_and_gradient(sdfs[k], ic, jc, dist, resolution, padded[k], gradients[k])
+        _pad_grid(sdfs[k], ic, jc, dist, padded[k])
         lipschitz[k] = grid_lipschitz(padded[k])
         positive[k] = grid_border_positive(padded[k])
 
 
 @njit(cache=True, nogil=True)
-def _prepare_deviations(mean, deviations, ic, jc, dist, resolution, padded, gradients, lipschitz, positive):
+def _prepare_deviations(mean, deviations, ic, jc, dist, padded, lipschitz, positive):
     """:func:`_prepare` of the grids ``mean + deviations[k]`` (float64 sums, one grid at a time in a scratch
     grid: the bank keeps them only as the padded grids' interior)."""
     h, w = mean.shape
@@ -102,7 +110,7 @@ def _prepare_deviations(mean, deviations, ic, jc, dist, resolution, padded, grad
         for i in range(h):
             for j in range(w):
                 sdf[i, j] = mean[i, j] + np.float64(deviations[k, i * w + j])
-        _pad_and_gradient(sdf, ic, jc, dist, resolution, padded[k], gradients[k])
+        _pad_grid(sdf, ic, jc, dist, padded[k])
         lipschitz[k] = grid_lipschitz(padded[k])
         positive[k] = grid_border_positive(padded[k])
 
@@ -160,12 +168,12 @@ class SdfBank:
     (``f(nearest node) + distance``), so jaws a few cells off the grid need no clamping; farther
     points are clamped to the padded grid and the remaining distance is added. Coefficients are
     stored in ``dtype`` (float32 by default: a 1000-sample bank of a 25 x 25 grid takes ~42 MB
-    with the gradient coefficients; SDF round-off ~1e-8 m) for the vectorised numpy path;
-    ``padded`` and ``gradient_grids`` keep float64 copies for the compiled kernel (another ~21 MB
-    for that bank; the numpy path's records are built on its first lookup). ``sdfs`` keeps the float64
-    grids. One compiled pass builds the padded grids, the gradients, the Lipschitz bounds and the border
-    test. Read-only after construction (safe to share between threads; the coefficient records are
-    computed once on first use).
+    with the gradient coefficients; SDF round-off ~1e-8 m) for the vectorised numpy path, built on its
+    first lookup. The compiled kernel reads ``padded`` (float64, 11 MB for that bank, built with the
+    Lipschitz bounds and border tests in one compiled pass) and, for given gradients, ``gradient_grids``;
+    finite-difference gradients it evaluates at the contacts from the values, so their grids (another
+    10 MB) are built only when asked for. ``sdfs`` keeps the float64 grids. Read-only after construction
+    (safe to share between threads; what is built on first use is built once).
     """
 
     def __init__(self, sdfs: np.ndarray, geometry: GridGeometry, gradients: np.ndarray | None = None,
@@ -189,8 +197,6 @@ class SdfBank:
         ic, jc, dist = _pad_distances(geometry.height, geometry.width, self.pad, res)
         #: float64 padded grids (B, Hp, Wp) read by the compiled kernel (:mod:`contact_kernel`)
         self.padded = np.empty((n, self._ph, self._pw))
-        #: float64 gradient grids (B, H, W, 2) read by the compiled normals (:func:`contact_kernel.unit_normals`)
-        self.gradient_grids = np.empty((n,) + geometry.shape + (2,))
         #: (B,) bounds (m per cell) on the gradient norm of each padded grid's bilinear interpolant
         #: (:func:`contact_kernel.lipschitz_bounds`)
         self.lipschitz = np.empty(n)
@@ -198,21 +204,24 @@ class SdfBank:
         #: off the padded grid and the compiled kernel walks lines that leave it only over the grid
         #: (:func:`contact_kernel.border_positive`)
         self.border_positive = np.empty(n, dtype=np.bool_)
+        #: True when ``gradients`` were given; else the gradients are the grids' finite differences, which the
+        #: compiled normals evaluate at the contacts (:func:`contact_kernel.unit_normals_from_values`) and
+        #: :attr:`gradient_grids` builds on first use
+        self.gradients_given = gradients is not None
+        self._gradient_grids: np.ndarray | None = None
         if gradients is not None:
             gradients = np.asarray(gradients, dtype=np.float64)
             if gradients.ndim == 3:
                 gradients = gradients[None]
-            if gradients.shape != self.gradient_grids.shape:
-                raise ValueError(f'gradients must have shape {self.gradient_grids.shape}, got {gradients.shape}')
+            if gradients.shape != (n,) + geometry.shape + (2,):
+                raise ValueError(f'gradients must have shape {(n,) + geometry.shape + (2,)}, got {gradients.shape}')
+            self._gradient_grids = np.array(gradients, dtype=np.float64)
         if _n_deviations is None:
-            _prepare(sdfs, ic, jc, dist, float(res), self.padded, self.gradient_grids, self.lipschitz,
-                     self.border_positive)
+            _prepare(sdfs, ic, jc, dist, self.padded, self.lipschitz, self.border_positive)
         else:  # filled by from_deviations; the grids are the padded grids' interior (f + 0.0: -0.0 reads +0.0)
             sdfs = self.padded[:, self.pad:self.pad + geometry.height, self.pad:self.pad + geometry.width]
         #: float64 grids (B, H, W), m
         self.sdfs = sdfs
-        if gradients is not None:
-            self.gradient_grids[...] = gradients
         # Array-of-structures: the 4 coefficients of a cell are adjacent and gathered as one record
         # (a 16-byte element for float32), ~1.5x faster than 4 gathers when lookups miss the cache.
         self._coef_dtype = np.dtype(dtype)
@@ -235,9 +244,23 @@ class SdfBank:
                              f'{geometry.shape}')
         bank = cls(mean, geometry, pad_cells=pad_cells, _n_deviations=deviations.shape[0])
         ic, jc, dist = _pad_distances(geometry.height, geometry.width, bank.pad, geometry.resolution)
-        _prepare_deviations(mean, deviations, ic, jc, dist, float(geometry.resolution), bank.padded,
-                            bank.gradient_grids, bank.lipschitz, bank.border_positive)
+        _prepare_deviations(mean, deviations, ic, jc, dist, bank.padded, bank.lipschitz, bank.border_positive)
         return bank
+
+    @property
+    def gradient_grids(self) -> np.ndarray:
+        """float64 gradient grids (B, H, W, 2): the given gradients, else the finite differences of ``sdfs``
+        (``np.gradient``'s values, built on first use: the compiled contact search does not need them)."""
+        if self._gradient_grids is None:
+            grads = np.empty((self.n,) + self.geometry.shape + (2,))
+            _finite_differences(self.sdfs, float(self.geometry.resolution), grads)
+            self._gradient_grids = grads
+        return self._gradient_grids
+
+    @gradient_grids.setter
+    def gradient_grids(self, value: np.ndarray) -> None:  # given gradients after construction (e.g. a reference)
+        self._gradient_grids = np.asarray(value, dtype=np.float64)
+        self.gradients_given = True
 
     def _build_records(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
         if self._records is None:

@@ -180,3 +180,29 @@ def test_float32_samples_give_the_float64_force_closure_counts_on_every_shipped_
         assert counts[0].sum() > 0, name
         differing += int(np.abs(counts[0] - counts[1]).sum())
     assert differing <= 2
+
+
+@pytest.mark.parametrize('shape', [(2, 2), (3, 7), (25, 25)])
+@pytest.mark.parametrize('pad', [0, 6])
+def test_normals_from_the_values_equal_the_normals_from_the_gradient_grids(shape, pad) -> None:
+    """The compiled normals of a finite-difference bank, evaluated at the contacts from the padded values, are
+    those interpolated from its gradient grids (``np.gradient``) bit for bit, at random contacts including the
+    grid's border, points off it (clamped), NaN contacts and a flat grid (no normal)."""
+    g = GridGeometry(-0.01, 0.02, 0.0068770665, shape[1], shape[0])
+    grids = _random_grids(6, *shape, seed=9)
+    grids[5] = 0.01  # flat: zero gradient everywhere
+    bank = SdfBank(grids, g, pad_cells=pad)
+    assert not bank.gradients_given
+    rng = np.random.default_rng(1)
+    t = 400
+    c = np.stack([rng.uniform(-1.0, shape[1], (2, t)), rng.uniform(-1.0, shape[0], (2, t))], axis=-1)
+    c[:, :40, 0] = rng.choice([0.0, shape[1] - 1.0], (2, 40))  # on the border columns
+    c[0, 40:50] = np.nan
+    index = rng.integers(0, 6, t).astype(np.intp)
+    fast, ref = np.empty((2, t, 2)), np.empty((2, t, 2))
+    contact_kernel.unit_normals_from_values(bank.padded, bank.pad, g.resolution, index, c, 1e-6, fast)
+    gy, gx = np.gradient(grids, g.resolution, axis=(1, 2))
+    contact_kernel.unit_normals(np.stack([gx, gy], axis=-1), index, c, 1e-6, ref)
+    np.testing.assert_array_equal(fast, ref)
+    assert np.all(fast[:, index == 5] == 0) and np.all(fast[0, 40:50] == 0)
+    assert np.all(np.abs(np.linalg.norm(fast[:, index != 5], axis=-1)[:, 50:] - 1) < 1e-12)
