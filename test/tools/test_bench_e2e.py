@@ -38,3 +38,11 @@ def test_warm_chain_keeps_the_previous_fit_and_plans_the_same_grasp() -> None:
     times, fit = bench_e2e.time_drifted(cold['grids'], cold['fit'], 1)
     assert len(times) == 1 and fit.warm_started and fit.searched and 1 < fit.n_evaluations < cold['ev']
     assert abs(fit.log_likelihood - cold['fit'].log_likelihood) < 1e-3
+
+
+def test_pf_is_a_bench_suite() -> None:
+    from gpis_grasp_ros.tools import bench_pf
+
+    assert bench.SUITES['pf'] == 'gpis_grasp_ros.tools.bench_pf'
+    for bag in ('A_tape_dispenser', 'head/A_tape_dispenser'):
+        assert (bench_pf.BAG_DIR / f'{bag}.mcap').is_file()
