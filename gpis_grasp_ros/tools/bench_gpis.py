@@ -232,7 +232,8 @@ def bench_bags(paths: list[str]) -> list[dict]:
         pf = [plan('gp-gpis-opt', p, seed=0).p_f for p in (cold, small, large)]
         name = str(Path(path).relative_to(Path(path).parents[1] if 'head' in Path(path).parts else Path(path).parent))
         fs, fl = small.hyperparameter_fit, large.hyperparameter_fit
-        ff = fisher_scoring_search(geometry, *search_inputs(occ, noise, geometry))  # a cold search in <= 10
+        obs, band, r_in = search_inputs(occ, noise, geometry)
+        ff = fisher_scoring_search(geometry, obs, GpisParams(), band, r_in)  # a cold search in <= 10 evaluations
         rows.append(dict(bag=name, cold=fc, small=fs, large=fl, pf=pf, fisher=ff))
         print(f'{name:<26} {fc.n_observations:>4} {fc.log_likelihood:>9.3f} {fc.n_evaluations:>3} '
               f'{math.sqrt(fc.signal_variance) * 1e3:>10.2f} {fc.length_scale * 1e3:>6.2f} | '
