@@ -180,22 +180,26 @@ def _line_crossing(grid, px, py, ux, uy, window, lip, f_start, res, positive, t_
     return 0.0, False
 
 
+@njit(cache=True, nogil=True, inline='always')
+def grid_border_positive(grid):
+    """Every node on the border of one padded grid (Hp, Wp) is > 0 (:func:`border_positive`)."""
+    hp, wp = grid.shape
+    for i in range(hp):
+        if grid[i, 0] <= 0 or grid[i, wp - 1] <= 0:
+            return False
+    for j in range(wp):
+        if grid[0, j] <= 0 or grid[hp - 1, j] <= 0:
+            return False
+    return True
+
+
 @njit(cache=True, nogil=True)
 def border_positive(grids):
     """Per padded grid (B, Hp, Wp): every node on its border is > 0 (then the extrapolated SDF is
     positive everywhere off the grid: see the module docstring)."""
-    b, hp, wp = grids.shape
-    out = np.ones(b, dtype=np.bool_)
-    for k in range(b):
-        for i in range(hp):
-            if grids[k, i, 0] <= 0 or grids[k, i, wp - 1] <= 0:
-                out[k] = False
-                break
-        if out[k]:
-            for j in range(wp):
-                if grids[k, 0, j] <= 0 or grids[k, hp - 1, j] <= 0:
-                    out[k] = False
-                    break
+    out = np.ones(grids.shape[0], dtype=np.bool_)
+    for k in range(grids.shape[0]):
+        out[k] = grid_border_positive(grids[k])
     return out
 
 
@@ -246,6 +250,26 @@ def first_crossing(grid, px, py, ux, uy, length, lipschitz=0.0, f_start=math.nan
     return _walk(grid, px, py, ux, uy, length)
 
 
+@njit(cache=True, nogil=True, inline='always')
+def grid_lipschitz(grid):
+    """The Lipschitz constant (m per cell) of one padded grid's (Hp, Wp) bilinear interpolant
+    (:func:`lipschitz_bounds`)."""
+    hp, wp = grid.shape
+    best = 0.0
+    for i in range(hp - 1):
+        for j in range(wp - 1):
+            top = grid[i, j + 1] - grid[i, j]
+            bottom = grid[i + 1, j + 1] - grid[i + 1, j]
+            left = grid[i + 1, j] - grid[i, j]
+            right = grid[i + 1, j + 1] - grid[i, j + 1]
+            # the largest of the 4 corners' squared norms: max(top², bottom²) + max(left², right²) (rounding is
+            # monotonic, so this is the largest of the 4 rounded sums, bit for bit); branch-free, it vectorises
+            t2, b2, l2, r2 = top * top, bottom * bottom, left * left, right * right
+            corner = (t2 if t2 > b2 else b2) + (l2 if l2 > r2 else r2)
+            best = corner if corner > best else best
+    return math.sqrt(best) * (1.0 + 1e-9)
+
+
 @njit(cache=True, nogil=True)
 def lipschitz_bounds(grids):
     """Per grid (B, Hp, Wp): the Lipschitz constant (m per cell) of its bilinear interpolant.
@@ -255,19 +279,9 @@ def lipschitz_bounds(grids):
     along the two cell edges meeting there. The maximum over all cells and corners is the exact
     bound (f is continuous across cells), ~1 cell of SDF per cell for a true SDF.
     """
-    b, hp, wp = grids.shape
-    out = np.zeros(b)
-    for k in range(b):
-        best = 0.0
-        for i in range(hp - 1):
-            for j in range(wp - 1):
-                top = grids[k, i, j + 1] - grids[k, i, j]
-                bottom = grids[k, i + 1, j + 1] - grids[k, i + 1, j]
-                left = grids[k, i + 1, j] - grids[k, i, j]
-                right = grids[k, i + 1, j + 1] - grids[k, i, j + 1]
-                best = max(best, top * top + left * left, top * top + right * right,
-                           bottom * bottom + left * left, bottom * bottom + right * right)
-        out[k] = math.sqrt(best) * (1.0 + 1e-9)
+    out = np.zeros(grids.shape[0])
+    for k in range(grids.shape[0]):
+        out[k] = grid_lipschitz(grids[k])
     return out
 
 
@@ -439,6 +453,36 @@ def exact_contacts(grids, lipschitz, positive, index, ax, ay, ux, uy, length, of
             contacts[side, t, 1] = ay[t] + o * perp_y + tm * vy
 
 
+@njit(cache=True, nogil=True, inline='always')
+def _cell_of(contacts, side, t, h, w):
+    """Cell (i, j) and offsets (fx, fy) of a contact (unpadded cells, clamped to the grid); i = -1 when NaN."""
+    u = contacts[side, t, 0]
+    v = contacts[side, t, 1]
+    if not (math.isfinite(u) and math.isfinite(v)):
+        return -1, 0, 0.0, 0.0
+    u = min(max(u, 0.0), w - 1.0)
+    v = min(max(v, 0.0), h - 1.0)
+    j = min(int(u), w - 2)
+    i = min(int(v), h - 2)
+    return i, j, u - j, v - i
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _interpolate(f00, f01, f10, f11, fx, fy):
+    return f00 + (f01 - f00) * fx + fy * ((f10 - f00) + (f11 - f01 - f10 + f00) * fx)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _normalise(gx, gy, min_norm, out, side, t):
+    norm = math.sqrt(gx * gx + gy * gy)
+    if norm > min_norm:
+        out[side, t, 0] = gx / norm
+        out[side, t, 1] = gy / norm
+    else:
+        out[side, t, 0] = 0.0
+        out[side, t, 1] = 0.0
+
+
 @njit(cache=True, nogil=True)
 def unit_normals(gradients, index, contacts, min_norm, out):
     """Unit outward normals ``out`` (2, T, 2) at ``contacts`` (2, T, 2) (unpadded cells, clamped to
@@ -448,35 +492,59 @@ def unit_normals(gradients, index, contacts, min_norm, out):
     w = gradients.shape[2]
     for side in range(2):
         for t in range(contacts.shape[1]):
-            u = contacts[side, t, 0]
-            v = contacts[side, t, 1]
-            if not (math.isfinite(u) and math.isfinite(v)):
+            i, j, fx, fy = _cell_of(contacts, side, t, h, w)
+            if i < 0:
                 out[side, t, 0] = 0.0
                 out[side, t, 1] = 0.0
                 continue
-            u = min(max(u, 0.0), w - 1.0)
-            v = min(max(v, 0.0), h - 1.0)
-            j = min(int(u), w - 2)
-            i = min(int(v), h - 2)
-            fx = u - j
-            fy = v - i
-            b = index[t]
-            gx = 0.0
-            gy = 0.0
-            for k in range(2):
-                f00 = gradients[b, i, j, k]
-                f01 = gradients[b, i, j + 1, k]
-                f10 = gradients[b, i + 1, j, k]
-                f11 = gradients[b, i + 1, j + 1, k]
-                val = f00 + (f01 - f00) * fx + fy * ((f10 - f00) + (f11 - f01 - f10 + f00) * fx)
-                if k == 0:
-                    gx = val
-                else:
-                    gy = val
-            norm = math.sqrt(gx * gx + gy * gy)
-            if norm > min_norm:
-                out[side, t, 0] = gx / norm
-                out[side, t, 1] = gy / norm
-            else:
+            g = gradients[index[t]]
+            gx = _interpolate(g[i, j, 0], g[i, j + 1, 0], g[i + 1, j, 0], g[i + 1, j + 1, 0], fx, fy)
+            gy = _interpolate(g[i, j, 1], g[i, j + 1, 1], g[i + 1, j, 1], g[i + 1, j + 1, 1], fx, fy)
+            _normalise(gx, gy, min_norm, out, side, t)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _difference_x(grid, pad, w, i, j, resolution):
+    """∂f/∂x at node (i, j) of the unpadded grid inside padded ``grid``, by ``np.gradient``'s formulas."""
+    r = pad + i
+    if j == 0:
+        return (grid[r, pad + 1] - grid[r, pad]) / resolution
+    if j == w - 1:
+        return (grid[r, pad + w - 1] - grid[r, pad + w - 2]) / resolution
+    return (grid[r, pad + j + 1] - grid[r, pad + j - 1]) / (2.0 * resolution)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _difference_y(grid, pad, h, i, j, resolution):
+    """∂f/∂y at node (i, j), as :func:`_difference_x`."""
+    c = pad + j
+    if i == 0:
+        return (grid[pad + 1, c] - grid[pad, c]) / resolution
+    if i == h - 1:
+        return (grid[pad + h - 1, c] - grid[pad + h - 2, c]) / resolution
+    return (grid[pad + i + 1, c] - grid[pad + i - 1, c]) / (2.0 * resolution)
+
+
+@njit(cache=True, nogil=True)
+def unit_normals_from_values(grids, pad, resolution, index, contacts, min_norm, out):
+    """:func:`unit_normals` with the gradient grids of the finite differences of the SDFs themselves, computed
+    only at the 4 nodes around each contact from the padded grids ``grids`` (B, Hp, Wp) (their interior is the
+    SDF: the same values and formulas as the bank's gradient grids, so the same normals)."""
+    h = grids.shape[1] - 2 * pad
+    w = grids.shape[2] - 2 * pad
+    for side in range(2):
+        for t in range(contacts.shape[1]):
+            i, j, fx, fy = _cell_of(contacts, side, t, h, w)
+            if i < 0:
                 out[side, t, 0] = 0.0
                 out[side, t, 1] = 0.0
+                continue
+            g = grids[index[t]]
+            res = resolution
+            gx = _interpolate(_difference_x(g, pad, w, i, j, res), _difference_x(g, pad, w, i, j + 1, res),
+                              _difference_x(g, pad, w, i + 1, j, res), _difference_x(g, pad, w, i + 1, j + 1, res),
+                              fx, fy)
+            gy = _interpolate(_difference_y(g, pad, h, i, j, res), _difference_y(g, pad, h, i, j + 1, res),
+                              _difference_y(g, pad, h, i + 1, j, res), _difference_y(g, pad, h, i + 1, j + 1, res),
+                              fx, fy)
+            _normalise(gx, gy, min_norm, out, side, t)

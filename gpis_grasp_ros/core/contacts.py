@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gpis_grasp_ros.core.contact_kernel import exact_contacts, unit_normals
+from gpis_grasp_ros.core.contact_kernel import exact_contacts, unit_normals, unit_normals_from_values
 from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.sdf_bank import MIN_GRADIENT_NORM, WORKSPACE, SdfBank, gather_records
 
@@ -131,8 +131,12 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
     cm = g.to_metric(c)  # (2, T, 2)
     if use_kernel:
         normals = np.empty((2, t_total, 2))
-        unit_normals(bank.gradient_grids, np.zeros(t_total, dtype=np.intp) if idx is None else np.array(idx),
-                     np.ascontiguousarray(c), MIN_GRADIENT_NORM, normals)
+        grid_index = np.zeros(t_total, dtype=np.intp) if idx is None else np.array(idx)
+        if bank.gradients_given:
+            unit_normals(bank.gradient_grids, grid_index, np.ascontiguousarray(c), MIN_GRADIENT_NORM, normals)
+        else:  # finite differences of the grids, at the contacts only (the same values as the gradient grids)
+            unit_normals_from_values(bank.padded, bank.pad, float(g.resolution), grid_index, np.ascontiguousarray(c),
+                                     MIN_GRADIENT_NORM, normals)
     else:
         normals = bank.normals_at(cm, None if idx is None else idx[None, :])
     # A vanishing gradient (flat SDF) defines no normal: the contact is invalid (never a made-up

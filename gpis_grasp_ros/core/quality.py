@@ -212,19 +212,27 @@ def grasp_quality(contacts: Contacts, com: np.ndarray, gripper: GripperParams, r
     return out.reshape(lead)
 
 
-@dataclass
 class ShapeSamples:
     """S joint GPIS samples with everything P_F needs, plus S grasp-perturbation draws (CRN).
 
-    ``bank`` the sampled SDFs (m) ready for contact finding, ``com`` (S, 2) their centres of mass
-    (m), ``eps`` (S, 2, 2) standard-normal perturbation draws (trial m pairs sample m with
-    eps m), ``rho`` the torque scale (m).
+    ``bank`` the sampled SDFs (m) ready for contact finding, ``eps`` (S, 2, 2) standard-normal
+    perturbation draws (trial m pairs sample m with eps m), ``rho`` the torque scale (m), ``com``
+    (S, 2) the samples' centres of mass (m). P_F does not read the centres of mass (force closure
+    depends on neither z nor ρ), so ``com=None`` computes them on first access only.
     """
 
-    bank: SdfBank
-    com: np.ndarray
-    eps: np.ndarray
-    rho: float
+    def __init__(self, bank: SdfBank, com: np.ndarray | None, eps: np.ndarray, rho: float) -> None:
+        self.bank = bank
+        self._com = None if com is None else np.asarray(com, dtype=np.float64)
+        self.eps = eps
+        self.rho = rho
+
+    @property
+    def com(self) -> np.ndarray:
+        """(S, 2) centres of mass (m) of the samples {f_m < 0} (computed on first access when not given)."""
+        if self._com is None:
+            self._com = center_of_mass(self.bank.sdfs, self.bank.geometry)
+        return self._com
 
     @property
     def n(self) -> int:
@@ -232,13 +240,19 @@ class ShapeSamples:
 
 
 def draw_shape_samples(posterior: GpisPosterior, n: int, rng: np.random.Generator,
-                       rho: float | None = None) -> ShapeSamples:
-    """Draw ``n`` joint SDF samples and perturbation noise for Monte-Carlo P_F."""
-    sdfs = posterior.sample(n, rng)
+                       rho: float | None = None, precision: type = np.float32) -> ShapeSamples:
+    """Draw ``n`` joint SDF samples and perturbation noise for Monte-Carlo P_F.
+
+    The random stream is :meth:`GpisPosterior.sample`'s (then the perturbations); ``precision`` is that of
+    the product L eps (:meth:`GpisPosterior.sample_deviations`; float32 by default: the samples differ from
+    the float64 ones by ~1e-9 m and the force-closure counts by a trial in thousands, docs/speed.md), the
+    mean is added in float64. ``np.float64`` gives exactly ``SdfBank(posterior.sample(n, rng))``.
+    """
+    bank = SdfBank.from_deviations(posterior.mean, posterior.sample_deviations(n, rng, precision), posterior.geometry)
     eps = rng.standard_normal((n, 2, 2))
     if rho is None:
         rho = torque_scale(posterior.mean, posterior.geometry)
-    return ShapeSamples(SdfBank(sdfs, posterior.geometry), center_of_mass(sdfs, posterior.geometry), eps, rho)
+    return ShapeSamples(bank, None, eps, rho)
 
 
 @dataclass

@@ -3,9 +3,9 @@
 Each grid is padded with extrapolated nodes (``f(nearest node) + distance``: the border is free space and a
 distance grows at most by the distance travelled) so jaws may start off the grid. The 4 bilinear coefficients of
 a cell are stored as one record so a lookup is a single gather; a per-thread workspace reuses large temporaries.
-The compiled contact search reads only the float64 padded grids and gradients, built in one compiled pass
-(:func:`pad_and_gradients`); the numpy path's coefficient records are built on its first lookup (a Monte-Carlo
-bank never needs them).
+The compiled contact search reads only the float64 padded grids and gradients, built with their Lipschitz
+bounds and border tests in one compiled pass; the numpy path's coefficient records are built on its first
+lookup (a Monte-Carlo bank never needs them).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import threading
 import numpy as np
 from numba import njit
 
-from gpis_grasp_ros.core.contact_kernel import border_positive, lipschitz_bounds
+from gpis_grasp_ros.core.contact_kernel import grid_border_positive, grid_lipschitz
 from gpis_grasp_ros.core.grid import GridGeometry
 
 #: An SDF gradient norm (dimensionless; 1 for an exact SDF) at or below this defines no normal:
@@ -42,7 +42,7 @@ def _coefficient_records(grids: np.ndarray, dtype: type = np.float32) -> np.ndar
 
 def pad_extrapolated(grids: np.ndarray, pad: int, resolution: float) -> np.ndarray:
     """Grids ``(B, H, W)`` padded by ``pad`` nodes per side with ``f(nearest node) + distance`` (the numpy
-    reference of :func:`pad_and_gradients`)."""
+    reference of the compiled set-up, :func:`_pad_and_gradient`)."""
     ic, jc, dist = _pad_distances(grids.shape[1], grids.shape[2], pad, resolution)
     return grids[:, ic[:, None], jc[None, :]] + dist[None]
 
@@ -56,35 +56,63 @@ def _pad_distances(h: int, w: int, pad: int, resolution: float) -> tuple[np.ndar
     return ic, jc, np.hypot((ii - ic)[:, None], (jj - jc)[None, :]) * resolution
 
 
-@njit(cache=True, nogil=True)
-def pad_and_gradients(sdfs, ic, jc, dist, resolution, padded, gradients):
-    """One pass over grids ``sdfs`` (B, H, W): ``padded`` (B, Hp, Wp) = the value at the nearest node
-    (``ic``, ``jc``) + ``dist`` (:func:`pad_extrapolated`), ``gradients`` (B, H, W, 2) = ∂f/∂x, ∂f/∂y
-    by the formulas of ``np.gradient`` (central differences inside, one-sided on the border; the same
-    floating-point operations, so the same bits)."""
-    b, h, w = sdfs.shape
+@njit(cache=True, nogil=True, inline='always')
+def _pad_grid(sdf, ic, jc, dist, padded):
+    """``padded`` (Hp, Wp) = the value of ``sdf`` (H, W) at the nearest node (``ic``, ``jc``) + ``dist``
+    (:func:`pad_extrapolated`, its numpy reference)."""
     hp, wp = dist.shape
+    for i in range(hp):
+        for j in range(wp):
+            padded[i, j] = sdf[ic[i], jc[j]] + dist[i, j]
+
+
+@njit(cache=True, nogil=True)
+def _finite_differences(sdfs, resolution, gradients):
+    """``gradients`` (B, H, W, 2) = ∂f/∂x, ∂f/∂y of grids ``sdfs`` (B, H, W) by the formulas of ``np.gradient``
+    (central differences inside, one-sided on the border; the same floating-point operations, so the same
+    bits; :func:`contact_kernel.unit_normals_from_values` evaluates the same formulas at single nodes)."""
+    b, h, w = sdfs.shape
     two = 2.0 * resolution
     for k in range(b):
-        for i in range(hp):
-            for j in range(wp):
-                padded[k, i, j] = sdfs[k, ic[i], jc[j]] + dist[i, j]
+        sdf = sdfs[k]
+        out = gradients[k]
+        for i in range(h):  # the border cases outside the inner loops, so that these vectorise
+            out[i, 0, 0] = (sdf[i, 1] - sdf[i, 0]) / resolution
+            for j in range(1, w - 1):
+                out[i, j, 0] = (sdf[i, j + 1] - sdf[i, j - 1]) / two
+            out[i, w - 1, 0] = (sdf[i, w - 1] - sdf[i, w - 2]) / resolution
+            if i == 0 or i == h - 1:
+                lo, hi, step = (0, 1, resolution) if i == 0 else (h - 2, h - 1, resolution)
+            else:
+                lo, hi, step = i - 1, i + 1, two
+            for j in range(w):
+                out[i, j, 1] = (sdf[hi, j] - sdf[lo, j]) / step
+
+
+@njit(cache=True, nogil=True)
+def _prepare(sdfs, ic, jc, dist, padded, lipschitz, positive):
+    """Per grid of ``sdfs`` (B, H, W): its padded grid (:func:`_pad_grid`) and, while that is in cache, its
+    Lipschitz bound and border test (:func:`contact_kernel.lipschitz_bounds`,
+    :func:`contact_kernel.border_positive`: the same operations)."""
+    for k in range(sdfs.shape[0]):
+        _pad_grid(sdfs[k], ic, jc, dist, padded[k])
+        lipschitz[k] = grid_lipschitz(padded[k])
+        positive[k] = grid_border_positive(padded[k])
+
+
+@njit(cache=True, nogil=True)
+def _prepare_deviations(mean, deviations, ic, jc, dist, padded, lipschitz, positive):
+    """:func:`_prepare` of the grids ``mean + deviations[k]`` (float64 sums, one grid at a time in a scratch
+    grid: the bank keeps them only as the padded grids' interior)."""
+    h, w = mean.shape
+    sdf = np.empty((h, w))
+    for k in range(deviations.shape[0]):
         for i in range(h):
             for j in range(w):
-                if j == 0:
-                    gx = (sdfs[k, i, 1] - sdfs[k, i, 0]) / resolution
-                elif j == w - 1:
-                    gx = (sdfs[k, i, w - 1] - sdfs[k, i, w - 2]) / resolution
-                else:
-                    gx = (sdfs[k, i, j + 1] - sdfs[k, i, j - 1]) / two
-                if i == 0:
-                    gy = (sdfs[k, 1, j] - sdfs[k, 0, j]) / resolution
-                elif i == h - 1:
-                    gy = (sdfs[k, h - 1, j] - sdfs[k, h - 2, j]) / resolution
-                else:
-                    gy = (sdfs[k, i + 1, j] - sdfs[k, i - 1, j]) / two
-                gradients[k, i, j, 0] = gx
-                gradients[k, i, j, 1] = gy
+                sdf[i, j] = mean[i, j] + np.float64(deviations[k, i * w + j])
+        _pad_grid(sdf, ic, jc, dist, padded[k])
+        lipschitz[k] = grid_lipschitz(padded[k])
+        positive[k] = grid_border_positive(padded[k])
 
 
 def _bilinear_combine(rec: np.ndarray, fx: np.ndarray, fy: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -140,52 +168,99 @@ class SdfBank:
     (``f(nearest node) + distance``), so jaws a few cells off the grid need no clamping; farther
     points are clamped to the padded grid and the remaining distance is added. Coefficients are
     stored in ``dtype`` (float32 by default: a 1000-sample bank of a 25 x 25 grid takes ~42 MB
-    with the gradient coefficients; SDF round-off ~1e-8 m) for the vectorised numpy path;
-    ``padded`` and ``gradient_grids`` keep float64 copies for the compiled kernel (another ~21 MB
-    for that bank; the numpy path's records are built on its first lookup). ``sdfs`` keeps the float64
-    grids. Read-only after construction (safe to share between threads; the Lipschitz bounds and the
-    coefficient records are computed once on first use).
+    with the gradient coefficients; SDF round-off ~1e-8 m) for the vectorised numpy path, built on its
+    first lookup. The compiled kernel reads ``padded`` (float64, 11 MB for that bank, built with the
+    Lipschitz bounds and border tests in one compiled pass) and, for given gradients, ``gradient_grids``;
+    finite-difference gradients it evaluates at the contacts from the values, so their grids (another
+    10 MB) are built only when asked for. ``sdfs`` keeps the float64 grids. Read-only after construction
+    (safe to share between threads; what is built on first use is built once).
     """
 
     def __init__(self, sdfs: np.ndarray, geometry: GridGeometry, gradients: np.ndarray | None = None,
-                 pad_cells: int = 6, dtype: type = np.float32) -> None:
-        sdfs = np.ascontiguousarray(sdfs, dtype=np.float64)
-        if sdfs.ndim == 2:
-            sdfs = sdfs[None]
-        if sdfs.ndim != 3 or sdfs.shape[1:] != geometry.shape:
-            raise ValueError(f'SDF grids must have shape (B, {geometry.height}, {geometry.width}), got {sdfs.shape}')
+                 pad_cells: int = 6, dtype: type = np.float32, *, _n_deviations: int | None = None) -> None:
+        if _n_deviations is None:
+            sdfs = np.ascontiguousarray(sdfs, dtype=np.float64)
+            if sdfs.ndim == 2:
+                sdfs = sdfs[None]
+            if sdfs.ndim != 3 or sdfs.shape[1:] != geometry.shape:
+                raise ValueError(f'SDF grids must have shape (B, {geometry.height}, {geometry.width}), '
+                                 f'got {sdfs.shape}')
         if geometry.height < 2 or geometry.width < 2:
             raise ValueError('contact finding needs a grid of at least 2 x 2 cells')
         self.geometry = geometry
-        self.sdfs = sdfs
-        self.n = sdfs.shape[0]
+        n = sdfs.shape[0] if _n_deviations is None else _n_deviations
+        self.n = n
         res = geometry.resolution
         self.pad = int(pad_cells)
         self._pw = geometry.width + 2 * self.pad
         self._ph = geometry.height + 2 * self.pad
         ic, jc, dist = _pad_distances(geometry.height, geometry.width, self.pad, res)
         #: float64 padded grids (B, Hp, Wp) read by the compiled kernel (:mod:`contact_kernel`)
-        self.padded = np.empty((self.n, self._ph, self._pw))
-        #: float64 gradient grids (B, H, W, 2) read by the compiled normals (:func:`contact_kernel.unit_normals`)
-        self.gradient_grids = np.empty(sdfs.shape + (2,))
+        self.padded = np.empty((n, self._ph, self._pw))
+        #: (B,) bounds (m per cell) on the gradient norm of each padded grid's bilinear interpolant
+        #: (:func:`contact_kernel.lipschitz_bounds`)
+        self.lipschitz = np.empty(n)
+        #: (B,) bool: every border node of the padded grid is > 0, so the extrapolated SDF has no zero
+        #: off the padded grid and the compiled kernel walks lines that leave it only over the grid
+        #: (:func:`contact_kernel.border_positive`)
+        self.border_positive = np.empty(n, dtype=np.bool_)
+        #: True when ``gradients`` were given; else the gradients are the grids' finite differences, which the
+        #: compiled normals evaluate at the contacts (:func:`contact_kernel.unit_normals_from_values`) and
+        #: :attr:`gradient_grids` builds on first use
+        self.gradients_given = gradients is not None
+        self._gradient_grids: np.ndarray | None = None
         if gradients is not None:
             gradients = np.asarray(gradients, dtype=np.float64)
             if gradients.ndim == 3:
                 gradients = gradients[None]
-            if gradients.shape != sdfs.shape + (2,):
-                raise ValueError(f'gradients must have shape {sdfs.shape + (2,)}, got {gradients.shape}')
-        pad_and_gradients(sdfs, ic, jc, dist, float(res), self.padded, self.gradient_grids)
-        if gradients is not None:
-            self.gradient_grids[...] = gradients
+            if gradients.shape != (n,) + geometry.shape + (2,):
+                raise ValueError(f'gradients must have shape {(n,) + geometry.shape + (2,)}, got {gradients.shape}')
+            self._gradient_grids = np.array(gradients, dtype=np.float64)
+        if _n_deviations is None:
+            _prepare(sdfs, ic, jc, dist, self.padded, self.lipschitz, self.border_positive)
+        else:  # filled by from_deviations; the grids are the padded grids' interior (f + 0.0: -0.0 reads +0.0)
+            sdfs = self.padded[:, self.pad:self.pad + geometry.height, self.pad:self.pad + geometry.width]
+        #: float64 grids (B, H, W), m
+        self.sdfs = sdfs
         # Array-of-structures: the 4 coefficients of a cell are adjacent and gathered as one record
         # (a 16-byte element for float32), ~1.5x faster than 4 gathers when lookups miss the cache.
         self._coef_dtype = np.dtype(dtype)
-        self._lipschitz: np.ndarray | None = None
-        self._border_positive: np.ndarray | None = None
         self._records: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None
         self._cells_padded = self._ph * self._pw
         self._float_index_exact = self.n * self._cells_padded < 2 ** 24
         self._cells_per_grid = geometry.height * geometry.width
+
+    @classmethod
+    def from_deviations(cls, mean: np.ndarray, deviations: np.ndarray, geometry: GridGeometry,
+                        pad_cells: int = 6) -> SdfBank:
+        """The bank of the grids ``mean + deviations[k]``: ``mean`` (H, W) m, ``deviations`` (B, H*W) row-major
+        (float32 or float64, e.g. :meth:`GpisPosterior.sample_deviations`), each grid summed in float64 within the
+        compiled set-up pass. With float64 deviations the bank equals ``SdfBank(mean + deviations)`` bit for bit
+        (its ``sdfs`` are a view of the padded grids' interior, where an exact -0.0 reads +0.0)."""
+        mean = np.ascontiguousarray(mean, dtype=np.float64)
+        deviations = np.ascontiguousarray(deviations)
+        if mean.shape != geometry.shape or deviations.ndim != 2 or deviations.shape[1] != mean.size:
+            raise ValueError(f'mean {mean.shape} and deviations {deviations.shape} do not match the grid '
+                             f'{geometry.shape}')
+        bank = cls(mean, geometry, pad_cells=pad_cells, _n_deviations=deviations.shape[0])
+        ic, jc, dist = _pad_distances(geometry.height, geometry.width, bank.pad, geometry.resolution)
+        _prepare_deviations(mean, deviations, ic, jc, dist, bank.padded, bank.lipschitz, bank.border_positive)
+        return bank
+
+    @property
+    def gradient_grids(self) -> np.ndarray:
+        """float64 gradient grids (B, H, W, 2): the given gradients, else the finite differences of ``sdfs``
+        (``np.gradient``'s values, built on first use: the compiled contact search does not need them)."""
+        if self._gradient_grids is None:
+            grads = np.empty((self.n,) + self.geometry.shape + (2,))
+            _finite_differences(self.sdfs, float(self.geometry.resolution), grads)
+            self._gradient_grids = grads
+        return self._gradient_grids
+
+    @gradient_grids.setter
+    def gradient_grids(self, value: np.ndarray) -> None:  # given gradients after construction (e.g. a reference)
+        self._gradient_grids = np.asarray(value, dtype=np.float64)
+        self.gradients_given = True
 
     def _build_records(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
         if self._records is None:
@@ -205,23 +280,6 @@ class SdfBank:
     def _grad_rec(self) -> tuple[np.ndarray, np.ndarray]:
         """Bilinear coefficient records of ∂f/∂x and ∂f/∂y (numpy path; built on first use)."""
         return self._build_records()[1]
-
-    @property
-    def border_positive(self) -> np.ndarray:
-        """(B,) bool: every border node of the padded grid is > 0, so the extrapolated SDF has no zero
-        off the padded grid and the compiled kernel walks lines that leave it only over the grid
-        (:func:`contact_kernel.border_positive`; computed on first use)."""
-        if self._border_positive is None:
-            self._border_positive = border_positive(self.padded)
-        return self._border_positive
-
-    @property
-    def lipschitz(self) -> np.ndarray:
-        """(B,) bounds (m per cell) on the gradient norm of each padded grid's bilinear interpolant
-        (computed on first use; :func:`contact_kernel.lipschitz_bounds`)."""
-        if self._lipschitz is None:
-            self._lipschitz = lipschitz_bounds(self.padded)
-        return self._lipschitz
 
     def _locate(self, u: np.ndarray, v: np.ndarray, index: np.ndarray | None):
         """Flat cell index and fractional offsets of unpadded cell coordinates (clamped to the grid)."""

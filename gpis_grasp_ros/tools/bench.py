@@ -3,6 +3,7 @@
     python -m gpis_grasp_ros.bench gpis       # GPIS fit / sampling / blur vs scikit-learn
     python -m gpis_grasp_ros.bench planners   # planners' time and P_F, vectorised P_F vs a loop
     python -m gpis_grasp_ros.bench e2e        # camera frames to a grasp: every stage on a few bags
+    python -m gpis_grasp_ros.bench pf         # the final P_F's parts; float32 vs float64 shape samples
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ SUITES = {
     'gpis': 'gpis_grasp_ros.tools.bench_gpis',
     'planners': 'gpis_grasp_ros.tools.bench_planners',
     'e2e': 'gpis_grasp_ros.tools.bench_e2e',
+    'pf': 'gpis_grasp_ros.tools.bench_pf',
 }
 
 

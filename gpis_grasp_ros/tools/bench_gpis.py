@@ -43,7 +43,8 @@ Second table, the maximum-likelihood fit (min and median ms of ``--ml-repeats`` 
 
 ``--bags`` adds a table over every shipped bag (bags/*.mcap, bags/head/*.mcap): the cold fit's log
 likelihood, warm fits from perturbed previous fits (small: C x 1.05, l x 0.97; large: C x 1.5,
-l x 0.85) and the GP-GPIS-OPT P_F (seed 0) on the cold and the warm posteriors.
+l x 0.85) and the GP-GPIS-OPT P_F (seed 0) on the cold and the warm posteriors, and the cold search by
+Fisher scoring in at most 10 evaluations (:func:`fisher_scoring_search`, same subset and bounds).
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ import numpy as np
 
 from gpis_grasp_ros.core.blur import gpis_blur
 from gpis_grasp_ros.core.gpis import GpisParams, GpisPosterior, HyperparameterFit, blas_threads, fit_gpis
-from gpis_grasp_ros.core.gpis.hyperparameters import fit_hyperparameters, hyperparameter_bounds
+from gpis_grasp_ros.core.gpis.hyperparameters import fisher_scoring_search, fit_hyperparameters, hyperparameter_bounds
 from gpis_grasp_ros.core.gpis.kernel import _cross_joint, _DenseKernel
 from gpis_grasp_ros.core.gpis.observations import VALUE, _observations_from, gradient_observations
 from gpis_grasp_ros.core.grid import GridGeometry
@@ -196,6 +197,18 @@ def likelihood_throughput(m: int = 25, repeats: int = 20) -> tuple[int, float, f
     return n, t_eval, n ** 3 / t_eval / 1e6, 2e9 / t_gemm / 1e6
 
 
+def search_inputs(occ: np.ndarray, noise: np.ndarray, geometry: GridGeometry, params: GpisParams = GpisParams()):
+    """What ``posterior_from_grids`` hands the hyperparameter search: (observations, band cells, inscribed radius m)."""
+    from gpis_grasp_ros.core.sdf import signed_distance
+
+    train = (occ >= 0) & np.isfinite(noise)
+    sdf, var = signed_distance((occ >= 50) | (occ < 0), geometry.resolution), np.where(train, noise, 0.0)
+    grads = gradient_observations(sdf, var, train, geometry, params.gradient_noise_variance) \
+        if params.gradient_observations else None
+    obs = _observations_from(geometry.cell_centers()[train], sdf[train], var[train], grads)
+    return obs, np.abs(sdf[train]) <= params.search_band_cells * geometry.resolution, max(0.0, -float(sdf.min()))
+
+
 def bench_bags(paths: list[str]) -> list[dict]:
     """Cold vs warm-from-perturbed fits on shipped bags: log likelihoods and GP-GPIS-OPT P_F (seed 0)."""
     from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
@@ -204,7 +217,8 @@ def bench_bags(paths: list[str]) -> list[dict]:
     from gpis_grasp_ros.data.bags import load_bag
 
     print(f"{'bag':<26} {'sub':>4} {'cold LL':>9} {'ev':>3} {'sqrt(C) mm':>10} {'l mm':>6} | "
-          f"{'small: LL':>10} {'ev':>3} | {'large: LL':>10} {'ev':>3} | {'P_F cold':>8} {'small':>6} {'large':>6}")
+          f"{'small: LL':>10} {'ev':>3} | {'large: LL':>10} {'ev':>3} | {'P_F cold':>8} {'small':>6} {'large':>6} | "
+          f"{'Fisher: LL':>10} {'ev':>3}")
     rows = []
     for path in paths:
         scene = load_bag(path)
@@ -218,11 +232,14 @@ def bench_bags(paths: list[str]) -> list[dict]:
         pf = [plan('gp-gpis-opt', p, seed=0).p_f for p in (cold, small, large)]
         name = str(Path(path).relative_to(Path(path).parents[1] if 'head' in Path(path).parts else Path(path).parent))
         fs, fl = small.hyperparameter_fit, large.hyperparameter_fit
-        rows.append(dict(bag=name, cold=fc, small=fs, large=fl, pf=pf))
+        obs, band, r_in = search_inputs(occ, noise, geometry)
+        ff = fisher_scoring_search(geometry, obs, GpisParams(), band, r_in)  # a cold search in <= 10 evaluations
+        rows.append(dict(bag=name, cold=fc, small=fs, large=fl, pf=pf, fisher=ff))
         print(f'{name:<26} {fc.n_observations:>4} {fc.log_likelihood:>9.3f} {fc.n_evaluations:>3} '
               f'{math.sqrt(fc.signal_variance) * 1e3:>10.2f} {fc.length_scale * 1e3:>6.2f} | '
               f'{fs.log_likelihood:>10.3f} {fs.n_evaluations:>3} | {fl.log_likelihood:>10.3f} {fl.n_evaluations:>3} | '
-              f'{pf[0]:>8.3f} {pf[1]:>6.3f} {pf[2]:>6.3f}', flush=True)
+              f'{pf[0]:>8.3f} {pf[1]:>6.3f} {pf[2]:>6.3f} | {ff.log_likelihood:>10.3f} {ff.n_evaluations:>3}',
+              flush=True)
     return rows
 
 

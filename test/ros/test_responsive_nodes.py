@@ -26,7 +26,7 @@ F = conversions.RclpyFactory()
 def test_gpis_node_answers_parameters_while_it_fits(monkeypatch):
     fitting, release = threading.Event(), threading.Event()
 
-    def slow_fit(self, occ, noise, geometry, params=None):
+    def slow_fit(self, occ, noise, geometry, params=None, *, warm_start=None):
         fitting.set()
         release.wait(10.0)
         raise ValueError('stopped by the test')

@@ -20,3 +20,29 @@ def test_whole_frame_scene_is_not_cropped() -> None:
     rgb, depth, intrinsics = bench_e2e.whole_frame_scene(320, 240, frames=1)
     assert rgb.shape == (1, 240, 320, 3) and depth.shape == (1, 240, 320)
     assert (intrinsics.width, intrinsics.height) == (320, 240)
+
+
+def test_warm_chain_keeps_the_previous_fit_and_plans_the_same_grasp() -> None:
+    """The warm chain of an unchanged scene keeps the warm-up chain's C and l after one likelihood evaluation
+    (so the same posterior and, at the same seed, the same grasp); the drifted start is re-searched back."""
+    case = bench_e2e.bag_cases()[0]
+    scene = bench_e2e.load_bag(bench_e2e.BAG_DIR / case.path, frames=case.frames)
+    planner = bench_e2e.PlannerParams()
+    cold = bench_e2e.time_chain(scene, case.sensing, planner, 0)
+    warm = bench_e2e.time_chain(scene, case.sensing, planner, 0, cold['fit'])
+    assert not cold['fit'].warm_started and cold['ev'] > 10
+    assert warm['fit'].warm_started and not warm['fit'].searched and warm['ev'] == 1
+    assert (warm['fit'].signal_variance, warm['fit'].length_scale) == (cold['fit'].signal_variance,
+                                                                       cold['fit'].length_scale)
+    assert warm['P_F'] == cold['P_F']
+    times, fit = bench_e2e.time_drifted(cold['grids'], cold['fit'], 1)
+    assert len(times) == 1 and fit.warm_started and fit.searched and 1 < fit.n_evaluations < cold['ev']
+    assert abs(fit.log_likelihood - cold['fit'].log_likelihood) < 1e-3
+
+
+def test_pf_is_a_bench_suite() -> None:
+    from gpis_grasp_ros.tools import bench_pf
+
+    assert bench.SUITES['pf'] == 'gpis_grasp_ros.tools.bench_pf'
+    for bag in ('A_tape_dispenser', 'head/A_tape_dispenser'):
+        assert (bench_pf.BAG_DIR / f'{bag}.mcap').is_file()

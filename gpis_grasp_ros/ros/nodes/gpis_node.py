@@ -5,7 +5,14 @@ same stamp and the same grid, computes the SDF by Euclidean distance transform, 
 (squared-exponential kernel, ML hyperparameters, constant negative prior mean, per-cell noise)
 and publishes latched ``gpis/model`` (GpisModel), ``gpis/mean`` and ``gpis/variance``
 (FloatGrid, m and m^2), ``gpis/blur`` (mono8 GPIS-Blur image) and OccupancyGrid renderings
-``gpis/mean_map`` and ``gpis/variance_map`` for RViz.
+``gpis/mean_map`` and ``gpis/variance_map`` for RViz, and latched ``gpis/status`` (std_msgs/String,
+``'ok: <summary>'`` naming how the hyperparameters were found, ``'failed: <reason>'`` when a pair was not fitted).
+
+Warm start: the last fit of every ``frame_id`` (at most :data:`WARM_STARTS` frames) is the next fit's
+``warm_start`` (docs/gpis-model.md, Warm start): its C and l are kept when the score test accepts them on the
+new frame, else L-BFGS-B searches from them alone. A change of any GPIS parameter forgets every stored fit, so
+the next frame is searched cold. The log line and ``gpis/status`` say which: ``warm (kept ...)``,
+``warm, re-searched ...``, ``cold search ...`` or ``fixed``.
 
 ``GpisModel.object_height`` is the height above the grid's table plane of the latched
 ``object/top`` point (geometry_msgs/PointStamped from segmentation_node) with the occupancy's stamp
@@ -18,6 +25,7 @@ from __future__ import annotations
 
 import sys
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +34,7 @@ from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import OccupancyGrid
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import Image
+from std_msgs.msg import String
 
 from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
 from gpis_grasp_ros.core import gpis, pipeline
@@ -44,6 +53,8 @@ from gpis_grasp_ros.ros.params import ZERO_IS_NONE, Param, ParamTable
 
 #: Largest per-cell noise variance accepted on object/noise_map (m^2; a 1 m standard deviation).
 MAX_NOISE_VARIANCE = 1.0
+#: Frames (header.frame_id) whose last hyperparameter fit is kept as the next fit's warm start.
+WARM_STARTS = 8
 
 
 @dataclass(frozen=True)
@@ -110,18 +121,35 @@ def grid_mismatch(a, b) -> str | None:
     return None
 
 
+def hyperparameter_summary(fit: gpis.HyperparameterFit | None) -> str:
+    """How a fit's C and l were found, for the log and ``gpis/status``."""
+    if fit is None:
+        return 'hyperparameters fixed'
+    if fit.warm_started and not fit.searched:
+        return f'hyperparameters warm: previous C, l kept (score {fit.drift_statistic:.2f}, 1 likelihood evaluation)'
+    if fit.warm_started:
+        return (f'hyperparameters warm: re-searched from the previous C, l (score {fit.drift_statistic:.2f}, '
+                f'{fit.n_evaluations} likelihood evaluations)')
+    return f'hyperparameters cold search ({fit.n_evaluations} likelihood evaluations, {fit.n_starts} starts)'
+
+
 class GpisNode(GuardedNode):
     """Thin ROS wrapper around :func:`gpis_grasp_ros.core.gpis.fit_gpis`."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__('gpis_node', **kwargs)
-        self.config: GpisNodeConfig = PARAMETERS.watch(self, build_config, self._apply_config)
+        self._lock = threading.Lock()
+        #: frame_id -> the last fit there (most recent last), the next fit's warm start
+        self._warm: OrderedDict[str, gpis.HyperparameterFit] = OrderedDict()
+        self.config: GpisNodeConfig | None = None
+        self.config = PARAMETERS.watch(self, build_config, self._apply_config)
         self._occupancy: OccupancyGrid | None = None
         self._noise: FloatGrid | None = None
         self._last_pair = None
         self._top: PointStamped | None = None
         self._published: tuple[gpis.GpisPosterior, Any, float] | None = None  # last model, its header, its height
-        self._lock = threading.Lock()
+        #: the last published posterior's hyperparameter fit (None: hyperparameters fixed)
+        self.last_fit: gpis.HyperparameterFit | None = None
         # the inputs one at a time, apart from the parameter services (answered while a fit runs)
         inputs = MutuallyExclusiveCallbackGroup()
         self.create_subscription(PointStamped, 'object/top', guarded(self, 'object/top', self._on_top), LATCHED_QOS,
@@ -137,8 +165,10 @@ class GpisNode(GuardedNode):
         self.blur_pub = self.create_publisher(Image, 'gpis/blur', LATCHED_QOS)
         self.mean_map_pub = self.create_publisher(OccupancyGrid, 'gpis/mean_map', LATCHED_QOS)
         self.var_map_pub = self.create_publisher(OccupancyGrid, 'gpis/variance_map', LATCHED_QOS)
+        self.status_pub = self.create_publisher(String, 'gpis/status', LATCHED_QOS)
         log_startup(self, ['object/occupancy', 'object/noise_map', 'object/top'],
-                    ['gpis/model', 'gpis/mean', 'gpis/variance', 'gpis/blur', 'gpis/mean_map', 'gpis/variance_map'],
+                    ['gpis/model', 'gpis/mean', 'gpis/variance', 'gpis/blur', 'gpis/mean_map', 'gpis/variance_map',
+                     'gpis/status'],
                     ['optimize_hyperparameters', 'prior_mean', 'blur_samples', 'stamp_tolerance', 'max_grid_cells'])
 
     @property
@@ -147,7 +177,25 @@ class GpisNode(GuardedNode):
         return self.config.params
 
     def _apply_config(self, config: GpisNodeConfig) -> None:
-        self.config = config
+        with self._lock:
+            if self.config is not None and config.params != self.config.params and self._warm:
+                self._warm.clear()  # other GPIS settings: the stored fits are not fits of this model
+                self.get_logger().info('GPIS parameters changed: the next fit of every frame is searched cold')
+            self.config = config
+
+    def warm_start(self, frame_id: str) -> gpis.HyperparameterFit | None:
+        """The stored fit that warm-starts the next fit of ``frame_id`` (None: a cold search)."""
+        with self._lock:
+            return self._warm.get(frame_id)
+
+    def _remember(self, frame_id: str, params: gpis.GpisParams, fit: gpis.HyperparameterFit | None) -> None:
+        with self._lock:
+            if fit is None or not fit.ok or params != self.config.params:
+                return  # no search, a failed one, or parameters changed while fitting: nothing to warm-start from
+            self._warm[frame_id] = fit
+            self._warm.move_to_end(frame_id)
+            while len(self._warm) > WARM_STARTS:
+                self._warm.popitem(last=False)
 
     def _on_occupancy(self, msg: OccupancyGrid) -> None:
         try:
@@ -239,20 +287,25 @@ class GpisNode(GuardedNode):
             if occ_msg.header.frame_id != noise_msg.header.frame_id:
                 raise ValueError(f"frames differ: header.frame_id '{occ_msg.header.frame_id}' vs "
                                  f"'{noise_msg.header.frame_id}'")
-            posterior = self.fit(occ, noise, geometry, config.params)
+            frame_id = occ_msg.header.frame_id
+            warm = self.warm_start(frame_id) if config.params.optimize_hyperparameters else None
+            posterior = self.fit(occ, noise, geometry, config.params, warm_start=warm)
             validation.check_posterior(posterior)
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.get_logger().warning(f'GPIS not updated: {exc}')
+            self.status_pub.publish(String(data=f'failed: {exc}'))
             return
+        self._remember(frame_id, config.params, posterior.hyperparameter_fit)
         with self._lock:
             self._last_pair = (occ_msg, noise_msg)
         self._publish(posterior, occ_msg.header, config)
 
-    def fit(self, occ: np.ndarray, noise: np.ndarray, geometry, params: gpis.GpisParams | None = None
-            ) -> gpis.GpisPosterior:
+    def fit(self, occ: np.ndarray, noise: np.ndarray, geometry, params: gpis.GpisParams | None = None, *,
+            warm_start: gpis.HyperparameterFit | None = None) -> gpis.GpisPosterior:
         """Occupancy (0..100; -1 = unknown: missing or uncertain, not trained, object in the SDF) and noise
-        (m^2, NaN = untrained) → GPIS posterior."""
-        return pipeline.posterior_from_grids(occ, noise, geometry, params or self.config.params)
+        (m^2, NaN = untrained) → GPIS posterior; ``warm_start`` a previous fit of the same scene."""
+        return pipeline.posterior_from_grids(occ, noise, geometry, params or self.config.params,
+                                             warm_start=warm_start)
 
     def _publish(self, posterior: gpis.GpisPosterior, header, config: GpisNodeConfig) -> None:
         factory = conversions.RclpyFactory()
@@ -272,11 +325,14 @@ class GpisNode(GuardedNode):
         self.mean_map_pub.publish(messages.numpy_to_occupancy_grid(factory, mean_map, g, header))
         self.var_map_pub.publish(messages.numpy_to_occupancy_grid(factory, var_map, g, header))
         p = posterior.params
-        self.get_logger().info(f'published GPIS {g.height}x{g.width}: C={p.signal_variance:.3g} m^2, '
-                               f'l={p.length_scale * 1000:.1f} mm, prior mean={p.prior_mean * 1000:.1f} mm, '
-                               f'object height {height * 1000:.1f} mm' + ('' if height > 0 else ' (unknown)'))
+        summary = (f'GPIS {g.height}x{g.width}: C={p.signal_variance:.3g} m^2, l={p.length_scale * 1000:.1f} mm, '
+                   f'prior mean={p.prior_mean * 1000:.1f} mm, {hyperparameter_summary(posterior.hyperparameter_fit)}')
+        self.get_logger().info(f'published {summary}, object height {height * 1000:.1f} mm'
+                               + ('' if height > 0 else ' (unknown)'))
         with self._lock:
             self._published = (posterior, header, height)
+            self.last_fit = posterior.hyperparameter_fit
+        self.status_pub.publish(String(data=f'ok: {summary}'))
         self._complete_height()
 
 
