@@ -129,6 +129,47 @@ def run_client(count: int, mode: str, seed0: int, retry: bool, timeout: float) -
     return out
 
 
+def run_pinger(nodes: dict[str, str], duration: float, period: float = 0.05) -> dict[str, Any]:
+    """A pinger process: asks each node for one parameter every ``period`` s for ``duration`` s; latencies
+    measured in a process doing nothing else (the soak's own work does not delay the answers it counts)."""
+    import rclpy
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.executors import SingleThreadedExecutor
+
+    rclpy.init()
+    node = rclpy.create_node(f'soak_pinger_{os.getpid()}')
+    clients = {name: (node.create_client(GetParameters, f'/{name}/get_parameters'), param)
+               for name, param in nodes.items()}
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    latencies: dict[str, list[float]] = {name: [] for name in nodes}
+    unanswered = dict.fromkeys(nodes, 0)
+    end = time.monotonic() + duration
+    while time.monotonic() < end:
+        for name, (cli, param) in clients.items():
+            if not cli.service_is_ready():
+                continue
+            done = threading.Event()
+            start = time.monotonic()
+            future = cli.call_async(GetParameters.Request(names=[param]))
+            future.add_done_callback(lambda _f, d=done: d.set())
+            if done.wait(5.0):
+                latencies[name].append(time.monotonic() - start)
+            else:
+                unanswered[name] += 1
+                cli.remove_pending_request(future)
+            time.sleep(period)
+    return latency_table(latencies, unanswered)
+
+
+def latency_table(latencies: dict[str, list[float]], unanswered: dict[str, int]) -> dict[str, Any]:
+    """Per node: calls, unanswered, p50/p99/max (ms)."""
+    return {name: {'calls': len(v), 'unanswered': unanswered[name], 'p50_ms': 1000 * _pct(v, 50),
+                   'p99_ms': 1000 * _pct(v, 99), 'max_ms': 1000 * max(v) if v else float('nan')}
+            for name, v in latencies.items()}
+
+
 # --------------------------------------------------------------------------- the soak side
 class ParameterPinger:
     """Asks every node for one parameter every ``period`` s in a thread; latencies per node."""
@@ -316,8 +357,16 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument('--seed', type=int, required=True)
     c.add_argument('--timeout', type=float, default=120.0)
     c.add_argument('--retry', action='store_true', help='ask again like GraspPlannerClient')
+    g = sub.add_parser('pinger')
+    g.add_argument('--node', action='append', required=True, help='NODE=PARAMETER to ask for (repeatable)')
+    g.add_argument('--duration', type=float, required=True, help='seconds')
+    g.add_argument('--period', type=float, default=0.05, help='seconds between calls')
     a = p.parse_args(argv)
-    print(json.dumps(run_client(a.count, a.mode, a.seed, a.retry, a.timeout)), flush=True)
+    if a.what == 'pinger':
+        nodes = dict(item.split('=', 1) for item in a.node)
+        print(json.dumps(run_pinger(nodes, a.duration, a.period)), flush=True)
+    else:
+        print(json.dumps(run_client(a.count, a.mode, a.seed, a.retry, a.timeout)), flush=True)
     os._exit(0)  # a client process ends here: no teardown of the spinning executor (it would abort)
 
 
