@@ -6,7 +6,7 @@
   discovery lags under CPU load). Every request must be answered: planned, or refused with a reason.
 * **models**: GPIS models published in a loop into planner_node, a plan every so often; its RSS
   sampled, the slope after warm-up in MB per 1000 models.
-* **parameter latency**: a pinger asks each node for a parameter every 50 ms during the whole run
+* **parameter latency**: a pinger process asks each node for a parameter every 50 ms during the whole run
   (while estimates, fits and plans run); p50/p99/max per node.
 
 Client processes run this module: ``python -m gpis_grasp_ros.tools.soak_load client ...`` prints one
@@ -130,13 +130,15 @@ def run_client(count: int, mode: str, seed0: int, retry: bool, timeout: float) -
 
 
 def run_pinger(nodes: dict[str, str], duration: float, period: float = 0.05) -> dict[str, Any]:
-    """A pinger process: asks each node for one parameter every ``period`` s for ``duration`` s; latencies
-    measured in a process doing nothing else (the soak's own work does not delay the answers it counts)."""
+    """A pinger process: asks each node for one parameter every ``period`` s for ``duration`` s (or until
+    SIGINT); latencies measured in a process doing nothing else, so the soak's own work (publishing models,
+    starting clients) does not delay the answers it counts."""
     import rclpy
     from rcl_interfaces.srv import GetParameters
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGINT: KeyboardInterrupt, the figures
     node = rclpy.create_node(f'soak_pinger_{os.getpid()}')
     clients = {name: (node.create_client(GetParameters, f'/{name}/get_parameters'), param)
                for name, param in nodes.items()}
@@ -146,6 +148,15 @@ def run_pinger(nodes: dict[str, str], duration: float, period: float = 0.05) -> 
     latencies: dict[str, list[float]] = {name: [] for name in nodes}
     unanswered = dict.fromkeys(nodes, 0)
     end = time.monotonic() + duration
+    try:
+        _ping(clients, latencies, unanswered, end, period)
+    except KeyboardInterrupt:  # the soak is done: SIGINT ends the pinger
+        pass
+    return latency_table(latencies, unanswered)
+
+
+def _ping(clients: dict, latencies: dict, unanswered: dict, end: float, period: float) -> None:
+    from rcl_interfaces.srv import GetParameters
     while time.monotonic() < end:
         for name, (cli, param) in clients.items():
             if not cli.service_is_ready():
@@ -160,7 +171,6 @@ def run_pinger(nodes: dict[str, str], duration: float, period: float = 0.05) -> 
                 unanswered[name] += 1
                 cli.remove_pending_request(future)
             time.sleep(period)
-    return latency_table(latencies, unanswered)
 
 
 def latency_table(latencies: dict[str, list[float]], unanswered: dict[str, int]) -> dict[str, Any]:
@@ -172,43 +182,28 @@ def latency_table(latencies: dict[str, list[float]], unanswered: dict[str, int])
 
 # --------------------------------------------------------------------------- the soak side
 class ParameterPinger:
-    """Asks every node for one parameter every ``period`` s in a thread; latencies per node."""
+    """The pinger process (:func:`run_pinger`) over the whole soak: every node asked every ``period`` s."""
 
-    def __init__(self, soak: Any, nodes: dict[str, str], period: float = 0.05) -> None:
-        from rcl_interfaces.srv import GetParameters
-        self.soak = soak
-        self.period = period
-        self.clients = {name: (soak.node.create_client(GetParameters, f'/{name}/get_parameters'), param)
-                        for name, param in nodes.items()}
-        self.latencies: dict[str, list[float]] = {name: [] for name in nodes}
-        self.unanswered: dict[str, int] = dict.fromkeys(nodes, 0)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
+    def __init__(self, soak: Any, nodes: dict[str, str], period: float = 0.05, limit_s: float = 7200.0) -> None:
+        asked = [x for name, param in nodes.items() for x in ('--node', f'{name}={param}')]
+        self.cmd = [sys.executable, '-m', 'gpis_grasp_ros.tools.soak_load', 'pinger', '--duration', str(limit_s),
+                    '--period', str(period), *asked]
+        self.env = soak.env
+        self.proc: subprocess.Popen | None = None
 
     def start(self) -> None:
-        self._thread.start()
-
-    def _run(self) -> None:
-        from rcl_interfaces.srv import GetParameters
-        while not self._stop.is_set():
-            for name, (cli, param) in self.clients.items():
-                if self._stop.is_set():
-                    return
-                if not cli.service_is_ready():
-                    continue
-                res, latency = self.soak.call(cli, GetParameters.Request(names=[param]), timeout=5.0)
-                if res is None:
-                    self.unanswered[name] += 1
-                else:
-                    self.latencies[name].append(latency)
-                time.sleep(self.period)
+        self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=subprocess.PIPE, text=True)
 
     def stop(self) -> dict[str, Any]:
-        self._stop.set()
-        self._thread.join(timeout=10.0)
-        return {name: {'calls': len(v), 'unanswered': self.unanswered[name], 'p50_ms': 1000 * _pct(v, 50),
-                       'p99_ms': 1000 * _pct(v, 99), 'max_ms': 1000 * max(v) if v else float('nan')}
-                for name, v in self.latencies.items()}
+        """Ends the pinger (SIGINT) and returns its table."""
+        import signal
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            out, _ = self.proc.communicate(timeout=30)
+            return json.loads(out.strip().splitlines()[-1])
+        except (subprocess.TimeoutExpired, ValueError, IndexError):
+            self.proc.kill()
+            return {'error': 'the pinger process gave no figures'}
 
 
 def _restart_planner(soak: Any, workers: int) -> None:
