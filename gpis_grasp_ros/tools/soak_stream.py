@@ -210,6 +210,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             'p50_s': _pct(latencies, 50), 'p95_s': _pct(latencies, 95), 'p99_s': _pct(latencies, 99),
             'max_s': max(latencies) if latencies else float('nan'),
             'estimates_ok': len(used), 'estimates_failed': failed,
+            'bursts_superseded': soak.log_count(r'a newer burst replaces', ['segmentation_node']),
             'frames_used': int(sum(used)), 'frames_per_estimate': f'{min(used, default=0)}-{max(used, default=0)}',
             'per_minute': _per_minute(stream.models, args.duration),
         }
