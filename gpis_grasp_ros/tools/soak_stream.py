@@ -126,9 +126,16 @@ class Stream:
         self._lock = threading.Lock()
         self._stamp = messages.stamp_to_ns
 
+        self.wall_start = time.time()
+        self.foreign_models = 0
+
         def on_model(msg: Any) -> None:
+            stamp = self._stamp(msg.header.stamp) * 1e-9
             with self._lock:
-                self.models.append((time.monotonic() - self.t0, time.time() - self._stamp(msg.header.stamp) * 1e-9))
+                if stamp < self.wall_start:  # not from this run's camera (another graph in the same domain)
+                    self.foreign_models += 1
+                    return
+                self.models.append((time.monotonic() - self.t0, time.time() - stamp))
         soak.node.create_subscription(GpisModel, 'gpis/model', on_model, LATCHED_QOS)
         soak.node.create_subscription(String, 'segmentation/status',
                                       lambda m: self.status.append((time.monotonic() - self.t0, m.data)), LATCHED_QOS)
@@ -210,6 +217,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             'p50_s': _pct(latencies, 50), 'p95_s': _pct(latencies, 95), 'p99_s': _pct(latencies, 99),
             'max_s': max(latencies) if latencies else float('nan'),
             'estimates_ok': len(used), 'estimates_failed': failed,
+            'models_not_from_this_camera': stream.foreign_models,
             'bursts_superseded': soak.log_count(r'a newer burst replaces', ['segmentation_node']),
             'frames_used': int(sum(used)), 'frames_per_estimate': f'{min(used, default=0)}-{max(used, default=0)}',
             'per_minute': _per_minute(stream.models, args.duration),

@@ -117,7 +117,7 @@ class NodeExecutor(MultiThreadedExecutor):
     thread is busy taking requests (and, on 2 loaded cores, waiting for the CPU and the GIL), and a parameter
     request arriving meanwhile waits in DDS until it comes round: planner_node took parameter requests up to
     0.27 s after they arrived (p99 70 ms) during bursts of 200 plan calls. Here the default group is left to
-    a second, single-threaded loop (:meth:`serve_defaults`) with its own wait set, woken by DDS when a
+    a second, single-threaded loop (:meth:`start_defaults`) with its own wait set, woken by DDS when a
     parameter request arrives; this executor waits on and runs everything else (docs/reliability.md).
     """
 
