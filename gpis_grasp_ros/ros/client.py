@@ -15,7 +15,10 @@ request history :data:`~gpis_grasp_ros.ros.nodes.common.SERVICE_QOS` the nodes' 
 calls is not dropped by DDS (the action's goal, result and cancel services too). An answer the
 middleware lost is asked for again: a service call is re-sent after :data:`ASK_AGAIN` s (with the same
 seed, chosen here when the caller gave 0, so planner_node joins the plan in progress or answers from
-its kept answers instead of planning twice), and an action result is requested again likewise. Every
+its kept answers instead of planning twice); an action goal is sent again likewise with the same goal id
+(the action server takes a goal id once: a repeat it already holds is answered "not accepted", which
+here means "accepted before", and the result is asked for by that id), and its result is requested
+again likewise. Every
 method returns plain dataclasses; nothing raises on a refused or failed
 request (``success`` is false and ``message`` says why). No tf2: :meth:`to_frame` applies a caller-given
 ``TransformStamped`` with numpy quaternion maths.
@@ -26,6 +29,7 @@ from __future__ import annotations
 import random
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,9 +38,11 @@ import numpy as np
 from action_msgs.msg import GoalStatus
 from geometry_msgs.msg import PointStamped, PoseStamped, TransformStamped
 from rclpy.action import ActionClient
+from rclpy.action.client import ClientGoalHandle
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
+from unique_identifier_msgs.msg import UUID
 
 from gpis_grasp_interfaces.action import PlanGrasp
 from gpis_grasp_interfaces.msg import GpisModel
@@ -51,7 +57,7 @@ _RESULT_FIELDS = ('success', 'message', 'method', 'jaw1', 'jaw2', 'grasp_pose', 
 #: Seconds without an answer after which a request is sent again (then every last value).
 ASK_AGAIN = (2.0, 4.0, 8.0, 16.0)
 _STATUS = {GoalStatus.STATUS_SUCCEEDED: 'succeeded', GoalStatus.STATUS_ABORTED: 'aborted',
-           GoalStatus.STATUS_CANCELED: 'canceled'}
+           GoalStatus.STATUS_CANCELED: 'canceled', GoalStatus.STATUS_UNKNOWN: 'refused'}
 
 
 @dataclass
@@ -262,10 +268,9 @@ class GraspPlannerClient(Node):
         if not self._plan_action.wait_for_server(timeout_sec=_remaining(end, 10.0)):
             return PlanResult(message='plan_grasp action server not available', status='refused')
         on_feedback = None if feedback_callback is None else (lambda msg: feedback_callback(msg.feedback))
-        sent = self._plan_action.send_goal_async(goal, feedback_callback=on_feedback)
-        if not _wait(sent, _remaining(end, None)):
+        handle = self._send_goal(goal, on_feedback, _remaining(end, None))
+        if handle is None:
             return PlanResult(message=f'plan_grasp goal not accepted within {timeout} s', status='timeout')
-        handle = sent.result()
         if not handle.accepted:
             return PlanResult(message='plan_grasp goal rejected', status='refused')
         with self._goal_lock:
@@ -277,11 +282,34 @@ class GraspPlannerClient(Node):
                 _ask(handle.get_result_async, lambda _f: None, 5.0)  # answered at the next checkpoint
                 return PlanResult(message=f'planning did not finish within {timeout} s; goal cancelled',
                                   status='timeout')
+            if answer.status == GoalStatus.STATUS_UNKNOWN:  # a repeat "not accepted" that was a real rejection
+                return PlanResult(message='plan_grasp goal rejected (the server does not know it)', status='refused')
             return PlanResult.from_message(answer.result, _STATUS.get(answer.status, f'status {answer.status}'))
         finally:
             with self._goal_lock:
                 if self._goal_handle is handle:
                     self._goal_handle = None
+
+    def _send_goal(self, goal: PlanGrasp.Goal, on_feedback: Any, timeout: float | None) -> Any:
+        """Send ``goal``, again with the same goal id after each :data:`ASK_AGAIN` delay while no reply came;
+        the goal handle (None when ``timeout`` s pass first). A repeat the server answers "not accepted" is
+        one it holds already (rclpy's action server takes each goal id once): its handle is made here."""
+        goal_id = UUID(uuid=list(uuid.uuid4().bytes))
+        first: list[Any] = []
+
+        def send() -> Any:
+            future = self._plan_action.send_goal_async(goal, feedback_callback=on_feedback, goal_uuid=goal_id)
+            first.append(future)
+            return future
+
+        reply = _ask_future(send, lambda _f: None, timeout)
+        if reply is None:
+            return None
+        handle = reply.result()
+        if handle.accepted or reply is first[0]:
+            return handle
+        accepted = PlanGrasp.Impl.SendGoalService.Response(accepted=True)
+        return ClientGoalHandle(self._plan_action, goal_id, accepted)
 
     def cancel(self, timeout: float = 5.0) -> bool:
         """Cancel the goal :meth:`plan` is waiting for; True when the planner accepted the cancel."""
@@ -346,6 +374,12 @@ def _remaining(end: float | None, cap: float | None) -> float | None:
 def _ask(send: Callable[[], Any], forget: Callable[[Any], Any], timeout: float | None) -> Any:
     """``send()`` a request (→ future), again after each :data:`ASK_AGAIN` delay while no answer came; the first
     answer (None when ``timeout`` s pass first). ``forget(future)`` drops the requests still pending."""
+    future = _ask_future(send, forget, timeout)
+    return None if future is None else future.result()
+
+
+def _ask_future(send: Callable[[], Any], forget: Callable[[Any], Any], timeout: float | None) -> Any:
+    """:func:`_ask`, returning the first future answered (None when ``timeout`` s pass first)."""
     end = None if timeout is None else time.monotonic() + timeout
     answered = threading.Event()
     futures: list[Any] = []
@@ -356,7 +390,7 @@ def _ask(send: Callable[[], Any], forget: Callable[[Any], Any], timeout: float |
             future.add_done_callback(lambda _f: answered.set())
             delay = ASK_AGAIN[min(attempt, len(ASK_AGAIN) - 1)]
             if answered.wait(_remaining(end, delay)):
-                return next(f.result() for f in futures if f.done())
+                return next(f for f in futures if f.done())
             if end is not None and time.monotonic() >= end:
                 return None
         return None

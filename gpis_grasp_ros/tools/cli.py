@@ -17,6 +17,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     'demo': ('gpis_grasp_ros.tools.demo', 'replay a bag through the nodes, plan, execute, write images'),
     'benchmark': ('gpis_grasp_ros.tools.benchmark', "reproduce the paper's Table I and runtime scaling"),
     'soak': ('gpis_grasp_ros.tools.soak', 'reliability figures of the nodes as processes (load, faults, shutdown)'),
+    'soak-stream': ('gpis_grasp_ros.tools.soak_stream', 'a live 30 Hz camera into the nodes, a plan every second '
+                    '(latency, answers, RSS)'),
     'make-dataset': ('gpis_grasp_ros.tools.dataset_cli', 'generate a deterministic object set (manifest, bags)'),
     'evaluate': ('gpis_grasp_ros.tools.evaluate', 'dataset evaluation: serial, process or Dask executor'),
     'tune': ('gpis_grasp_ros.tools.tune', 'k-fold cross-validation of lambda and alpha on a dataset'),

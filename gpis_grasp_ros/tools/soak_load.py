@@ -6,7 +6,7 @@
   discovery lags under CPU load). Every request must be answered: planned, or refused with a reason.
 * **models**: GPIS models published in a loop into planner_node, a plan every so often; its RSS
   sampled, the slope after warm-up in MB per 1000 models.
-* **parameter latency**: a pinger asks each node for a parameter every 50 ms during the whole run
+* **parameter latency**: a pinger process asks each node for a parameter every 50 ms during the whole run
   (while estimates, fits and plans run); p50/p99/max per node.
 
 Client processes run this module: ``python -m gpis_grasp_ros.tools.soak_load client ...`` prints one
@@ -129,45 +129,81 @@ def run_client(count: int, mode: str, seed0: int, retry: bool, timeout: float) -
     return out
 
 
+def run_pinger(nodes: dict[str, str], duration: float, period: float = 0.05) -> dict[str, Any]:
+    """A pinger process: asks each node for one parameter every ``period`` s for ``duration`` s (or until
+    SIGINT); latencies measured in a process doing nothing else, so the soak's own work (publishing models,
+    starting clients) does not delay the answers it counts."""
+    import rclpy
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGINT: KeyboardInterrupt, the figures
+    node = rclpy.create_node(f'soak_pinger_{os.getpid()}')
+    clients = {name: (node.create_client(GetParameters, f'/{name}/get_parameters'), param)
+               for name, param in nodes.items()}
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    latencies: dict[str, list[float]] = {name: [] for name in nodes}
+    unanswered = dict.fromkeys(nodes, 0)
+    end = time.monotonic() + duration
+    try:
+        _ping(clients, latencies, unanswered, end, period)
+    except KeyboardInterrupt:  # the soak is done: SIGINT ends the pinger
+        pass
+    return latency_table(latencies, unanswered)
+
+
+def _ping(clients: dict, latencies: dict, unanswered: dict, end: float, period: float) -> None:
+    from rcl_interfaces.srv import GetParameters
+    while time.monotonic() < end:
+        for name, (cli, param) in clients.items():
+            if not cli.service_is_ready():
+                continue
+            done = threading.Event()
+            start = time.monotonic()
+            future = cli.call_async(GetParameters.Request(names=[param]))
+            future.add_done_callback(lambda _f, d=done: d.set())
+            if done.wait(5.0):
+                latencies[name].append(time.monotonic() - start)
+            else:
+                unanswered[name] += 1
+                cli.remove_pending_request(future)
+            time.sleep(period)
+
+
+def latency_table(latencies: dict[str, list[float]], unanswered: dict[str, int]) -> dict[str, Any]:
+    """Per node: calls, unanswered, p50/p99/max (ms)."""
+    return {name: {'calls': len(v), 'unanswered': unanswered[name], 'p50_ms': 1000 * _pct(v, 50),
+                   'p99_ms': 1000 * _pct(v, 99), 'max_ms': 1000 * max(v) if v else float('nan')}
+            for name, v in latencies.items()}
+
+
 # --------------------------------------------------------------------------- the soak side
 class ParameterPinger:
-    """Asks every node for one parameter every ``period`` s in a thread; latencies per node."""
+    """The pinger process (:func:`run_pinger`) over the whole soak: every node asked every ``period`` s."""
 
-    def __init__(self, soak: Any, nodes: dict[str, str], period: float = 0.05) -> None:
-        from rcl_interfaces.srv import GetParameters
-        self.soak = soak
-        self.period = period
-        self.clients = {name: (soak.node.create_client(GetParameters, f'/{name}/get_parameters'), param)
-                        for name, param in nodes.items()}
-        self.latencies: dict[str, list[float]] = {name: [] for name in nodes}
-        self.unanswered: dict[str, int] = dict.fromkeys(nodes, 0)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
+    def __init__(self, soak: Any, nodes: dict[str, str], period: float = 0.05, limit_s: float = 7200.0) -> None:
+        asked = [x for name, param in nodes.items() for x in ('--node', f'{name}={param}')]
+        self.cmd = [sys.executable, '-m', 'gpis_grasp_ros.tools.soak_load', 'pinger', '--duration', str(limit_s),
+                    '--period', str(period), *asked]
+        self.env = soak.env
+        self.proc: subprocess.Popen | None = None
 
     def start(self) -> None:
-        self._thread.start()
-
-    def _run(self) -> None:
-        from rcl_interfaces.srv import GetParameters
-        while not self._stop.is_set():
-            for name, (cli, param) in self.clients.items():
-                if self._stop.is_set():
-                    return
-                if not cli.service_is_ready():
-                    continue
-                res, latency = self.soak.call(cli, GetParameters.Request(names=[param]), timeout=5.0)
-                if res is None:
-                    self.unanswered[name] += 1
-                else:
-                    self.latencies[name].append(latency)
-                time.sleep(self.period)
+        self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=subprocess.PIPE, text=True)
 
     def stop(self) -> dict[str, Any]:
-        self._stop.set()
-        self._thread.join(timeout=10.0)
-        return {name: {'calls': len(v), 'unanswered': self.unanswered[name], 'p50_ms': 1000 * _pct(v, 50),
-                       'p99_ms': 1000 * _pct(v, 99), 'max_ms': 1000 * max(v) if v else float('nan')}
-                for name, v in self.latencies.items()}
+        """Ends the pinger (SIGINT) and returns its table."""
+        import signal
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            out, _ = self.proc.communicate(timeout=30)
+            return json.loads(out.strip().splitlines()[-1])
+        except (subprocess.TimeoutExpired, ValueError, IndexError):
+            self.proc.kill()
+            return {'error': 'the pinger process gave no figures'}
 
 
 def _restart_planner(soak: Any, workers: int) -> None:
@@ -316,8 +352,16 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument('--seed', type=int, required=True)
     c.add_argument('--timeout', type=float, default=120.0)
     c.add_argument('--retry', action='store_true', help='ask again like GraspPlannerClient')
+    g = sub.add_parser('pinger')
+    g.add_argument('--node', action='append', required=True, help='NODE=PARAMETER to ask for (repeatable)')
+    g.add_argument('--duration', type=float, required=True, help='seconds')
+    g.add_argument('--period', type=float, default=0.05, help='seconds between calls')
     a = p.parse_args(argv)
-    print(json.dumps(run_client(a.count, a.mode, a.seed, a.retry, a.timeout)), flush=True)
+    if a.what == 'pinger':
+        nodes = dict(item.split('=', 1) for item in a.node)
+        print(json.dumps(run_pinger(nodes, a.duration, a.period)), flush=True)
+    else:
+        print(json.dumps(run_client(a.count, a.mode, a.seed, a.retry, a.timeout)), flush=True)
     os._exit(0)  # a client process ends here: no teardown of the spinning executor (it would abort)
 
 

@@ -120,3 +120,52 @@ def test_the_client_asks_again_until_an_answer_comes(monkeypatch):
     assert client_api._ask(send, forgotten.append, 5.0) == 'answer'
     assert len(sent) == 3 and forgotten == sent[:2]
     assert client_api._ask(lambda: Future(), lambda _f: None, 0.2) is None
+
+
+def _drop_first(waitable, kinds: tuple[str, ...], dropped: dict[str, int]) -> None:
+    """Lose the first message of each kind ('goal', 'result') the action client or server takes."""
+    real = waitable.execute
+
+    async def lossy(taken):
+        for kind in kinds:
+            if kind in taken and not dropped.get(kind):
+                dropped[kind] = 1
+                del taken[kind]
+        await real(taken)
+    waitable.execute = lossy
+
+
+@pytest.mark.parametrize('side', ['client', 'server'])
+def test_the_action_path_asks_again_and_the_goal_is_planned_once(model_msg, monkeypatch, side):
+    """client: the goal's acceptance and the first result reply are lost on the way back (the server has the
+    goal; the repeat with the same goal id is answered 'not accepted' = held already); server: the first goal
+    request and the first result request are lost on the way in."""
+    monkeypatch.setattr(client_api, 'ASK_AGAIN', (0.5,))
+    real = planners.plan
+    calls = []
+
+    def counting(*args, **kwargs):
+        calls.append(args[0])
+        return real(*args, **kwargs)
+    monkeypatch.setattr(planners, 'plan', counting)
+    ros = RosHarness()
+    try:
+        planner = ros.add(PlannerNode(context=ros.context, parameter_overrides=[
+            Parameter('num_shape_samples', value=50), Parameter('num_grasp_samples', value=20)]))
+        ros.node('probe').create_publisher(GpisModel, 'gpis/model', LATCHED_QOS).publish(model_msg)
+        assert wait_for(planner.has_model, 20.0)
+        client = client_api.GraspPlannerClient(context=ros.context)
+        try:
+            assert client.wait_until_ready(timeout=20.0)
+            dropped: dict[str, int] = {}
+            _drop_first(client._plan_action if side == 'client' else planner._action, ('goal', 'result'), dropped)
+            grasp = client.plan(method='gp-m', seed=3, timeout=60.0)
+            assert dropped == {'goal': 1, 'result': 1}
+            assert grasp.success and grasp.status == 'succeeded', grasp.message
+            assert calls == ['gp-m']  # planned once although the goal was sent twice
+            again = client.plan(method='gp-m', seed=3, timeout=60.0)  # nothing lost: the same grasp
+            assert again.success and again.jaw1.pose == grasp.jaw1.pose and len(calls) == 2
+        finally:
+            client.close()
+    finally:
+        ros.close()

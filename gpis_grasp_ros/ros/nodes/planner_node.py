@@ -48,18 +48,16 @@ from typing import Any
 import numpy as np
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from sensor_msgs.msg import Image
-from visualization_msgs.msg import MarkerArray
 
 from gpis_grasp_interfaces.action import PlanGrasp
 from gpis_grasp_interfaces.msg import GpisModel
 from gpis_grasp_interfaces.srv import GraspPlan
-from gpis_grasp_ros.core import contacts, planners
+from gpis_grasp_ros.core import planners
 from gpis_grasp_ros.core.blur import gpis_blur
 from gpis_grasp_ros.core.gripper import GripperParams
-from gpis_grasp_ros.core.sdf_bank import SdfBank
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.ros import conversions, validation
+from gpis_grasp_ros.ros.nodes import plan_output
 from gpis_grasp_ros.ros.nodes.common import (
     LATCHED_QOS,
     SERVICE_QOS,
@@ -79,7 +77,6 @@ from gpis_grasp_ros.ros.nodes.shared_params import (
     gripper_params,
 )
 from gpis_grasp_ros.ros.params import Param, ParamTable
-from gpis_grasp_ros.viz import images as viz
 
 MAX_INITIAL_GRASPS = 1000
 #: Methods whose request field num_initial_grasps means K heuristic grasp samples.
@@ -173,12 +170,6 @@ def build_config(v: dict[str, Any]) -> PlannerConfig:
                          limits=limits, **config)
 
 
-def _object_height(config: PlannerConfig, model: Any) -> float:
-    """Object height (m) for the automatic grasp height: the ``object_height`` parameter when > 0, else the
-    height segmentation measured (``GpisModel.object_height``, 0 = unknown)."""
-    return config.object_height if config.object_height > 0 else messages.gpis_model_object_height(model)
-
-
 @dataclass(eq=False)
 class PlanJob:
     """One admitted request (service call or action goal) and its outcome."""
@@ -237,8 +228,7 @@ class PlannerNode(GuardedNode):
         self._model_topic = 'gpis/model'
         self.create_subscription(GpisModel, self._model_topic, guarded(self, self._model_topic, self._on_model),
                                  LATCHED_QOS, callback_group=MutuallyExclusiveCallbackGroup())
-        self.marker_pub = self.create_publisher(MarkerArray, 'grasp/markers', LATCHED_QOS)
-        self.image_pub = self.create_publisher(Image, 'grasp/image', LATCHED_QOS)
+        self.visuals = plan_output.GraspVisuals(self)
         self._answers: collections.OrderedDict[tuple, Any] = collections.OrderedDict()  # key -> response
         self._keyed: dict[tuple, PlanJob] = {}  # key -> job in progress
         self._answer_basis: tuple = (None, None)  # the model and configuration the kept answers were planned with
@@ -380,7 +370,7 @@ class PlannerNode(GuardedNode):
         if job.response is None:
             job.response = GraspPlan.Response()
         try:
-            self._answer(job.response, job)
+            plan_output.fill_answer(job.response, job, self.get_logger(), self.visuals)
         except Exception as exc:  # noqa: BLE001 - the callers always get an answer
             job.response.success = False
             job.response.message = f'internal error in plan_grasp: {type(exc).__name__}: {exc}'
@@ -445,44 +435,6 @@ class PlannerNode(GuardedNode):
         sampling = job.method in SAMPLING_METHODS
         return replace(p, n_initial_grasps=p.n_initial_grasps if sampling else job.n,
                        n_grasp_samples=job.n if sampling else p.n_grasp_samples, uncertainty_penalty=job.lam)
-
-    def _answer(self, response: Any, job: PlanJob) -> Any:
-        """Fill a GraspPlan response (or PlanGrasp result: same fields) from a finished job."""
-        response.success = False
-        response.method = job.method
-        if job.started is not None:
-            response.planning_time = time.monotonic() - job.started
-        if job.stopped == 'timeout':
-            response.message = (f'planning with {job.method} exceeded planning_timeout='
-                                f'{job.config.planning_timeout:.1f} s and was stopped; try fewer initial grasps / '
-                                'samples or a larger timeout')
-        elif job.stopped == SHUTTING_DOWN:
-            response.message = f'planner_node is {SHUTTING_DOWN}; request not completed'
-        elif job.stopped == 'cancelled':
-            response.message = 'cancelled by the client'
-        elif job.stopped:
-            response.message = f'stopped: {job.stopped}'
-        elif job.error is not None:
-            response.message = f'{job.method} failed: {type(job.error).__name__}: {job.error}'
-            self.get_logger().error(response.message)
-        elif job.result is not None:
-            result = job.result
-            c = job.config
-            conversions.fill_grasp_plan_response(
-                response, result, job.model.header, geometry=job.posterior.geometry,
-                grasp_height=conversions.grasp_height_for(c.grasp_height, _object_height(c, job.model), c.jaw_height),
-                contacts_xy=conversions.mean_shape_contacts(job.posterior, result, c.gripper.jaw_width))
-            finite = np.isfinite(np.concatenate([np.ravel(result.jaw1), np.ravel(result.jaw2)])).all()
-            if response.success and not finite:
-                response.success = False
-                response.message = f'{job.method} returned non-finite jaw positions; not a valid grasp'
-            if response.success:
-                self._publish_visuals(result, job)
-            self.get_logger().info(f'{job.method}: {response.message} (P_F={float(result.p_f):.2f}, '
-                                   f'{float(result.planning_time):.2f} s)')
-        else:
-            response.message = 'planning did not finish'
-        return response
 
     def _on_plan(self, request: GraspPlan.Request, reply: Reply) -> None:
         """A service call: answered at once (refused, asked again) or later by the planning thread."""
@@ -608,26 +560,6 @@ class PlannerNode(GuardedNode):
             pass
         super().destroy_node()
 
-    # ------------------------------------------------------------------ visuals
-    def _publish_visuals(self, result, job: PlanJob) -> None:
-        posterior, header = job.posterior, job.model.header
-        jaw_width = job.config.gripper.jaw_width
-        bank = SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
-        con = contacts.find_contacts(bank, result.jaw1, result.jaw2, GripperParams(jaw_width=jaw_width),
-                                     check_opening=False)
-        touches = np.stack([np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]])
-        if not bool(np.ravel(con.valid)[0]):
-            touches = None
-        c = job.config
-        self.marker_pub.publish(conversions.grasp_markers(
-            result, header, posterior.geometry, jaw_width, jaw_height=c.jaw_height, contacts_xy=touches,
-            grasp_height=conversions.grasp_height_for(c.grasp_height, _object_height(c, job.model), c.jaw_height)))
-        overlay = viz.grasp_overlay(job.blur, posterior.geometry, [result], scale=job.config.image_scale,
-                                    jaw_width_m=jaw_width)
-        factory = conversions.RclpyFactory()
-        self.image_pub.publish(messages.numpy_to_image(factory, overlay, 'rgb8',
-                                                       messages.header(factory, messages.stamp_to_ns(header.stamp),
-                                                                       header.frame_id)))
 
 
 def main(args: list[str] | None = None) -> int:

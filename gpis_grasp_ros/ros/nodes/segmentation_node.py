@@ -173,6 +173,11 @@ class SegmentationNode(GuardedNode):
     burst first. So a complete replay of a bag gives exactly the offline pipeline's grid, and a
     replay that lost a few best-effort frames still gives an estimate (from fewer frames).
 
+    **A live camera.** A complete burst is estimated in a thread of its own while the next burst is
+    collected, so frames do not wait in the input queue during an estimate (they would be stale when
+    taken). When a burst is complete before the estimate of the previous one has finished, it waits; a
+    newer complete burst replaces it (the newest wins; logged, counted in ``bursts_superseded``).
+
     **Camera input QoS.** ``input_reliability: best_effort`` (default, like camera drivers'
     sensor-data QoS) matches every publisher but may lose frames of large messages on a busy
     link; ``reliable`` matches only reliable publishers (e.g. ``gpis-grasp play --reliable``) and
@@ -194,6 +199,13 @@ class SegmentationNode(GuardedNode):
         self._pending_rgb: dict[int, Image] = {}
         self._pending_depth: dict[int, Image] = {}
         self._lock = threading.Lock()
+        # complete bursts are estimated in a thread of their own while the next one is collected (frames are
+        # not left waiting in the input queue during an estimate): one waits at most, the newest
+        self._estimates = threading.Condition()
+        self._waiting: tuple | None = None
+        self.bursts_superseded = 0
+        self._estimator = threading.Thread(target=self._estimate_loop, name='segmentation-estimate', daemon=True)
+        self._estimator.start()
 
         qos = sensor_qos(inputs.input_reliability)
         # frames and the burst timer one at a time, apart from the parameter services (answered during an
@@ -322,7 +334,7 @@ class SegmentationNode(GuardedNode):
                 finished.append(self._take_burst('frames_to_average reached'))
         for item in finished:
             if item is not None:
-                self._estimate(*item)
+                self._hand_over(item)
 
     def _on_burst_timer(self) -> None:
         with self._lock:
@@ -331,7 +343,7 @@ class SegmentationNode(GuardedNode):
                 return
             item = self._take_burst(f'burst ended: no frame for {timeout:g} s')
         if item is not None:
-            self._estimate(*item)
+            self._hand_over(item)
 
     def _take_burst(self, why: str) -> tuple | None:
         """Take the collected frames (caller holds the lock); None when fewer than min_frames."""
@@ -342,6 +354,44 @@ class SegmentationNode(GuardedNode):
                                           f'{self.burst.min_frames}; no estimate')
             return None
         return frames, self._intrinsics_used, self._stamp, self._frame_id, why
+
+    def _hand_over(self, item: tuple) -> None:
+        """Give a complete burst to the estimating thread; one it has not started yet is replaced (newest wins)."""
+        with self._estimates:
+            if self._waiting is not None:
+                self.bursts_superseded += 1
+                self.get_logger().info(f'a newer burst replaces one of {len(self._waiting[0])} frames not yet '
+                                       f'estimated (the estimate before it still runs; {self.bursts_superseded} '
+                                       'replaced so far)')
+            self._waiting = item
+            self._estimates.notify_all()
+
+    def _estimate_loop(self) -> None:
+        while True:
+            with self._estimates:
+                while self._waiting is None and not self.shutting_down.is_set():
+                    self._estimates.wait()
+                if self.shutting_down.is_set():
+                    return
+                item, self._waiting = self._waiting, None
+                self.enter_callback()
+            try:
+                guarded(self, 'segmentation', lambda burst: self._estimate(*burst))(item)
+            finally:
+                self.exit_callback()
+
+    def destroy_node(self) -> None:
+        self.begin_shutdown()  # the estimating thread ends
+        super().destroy_node()
+
+    def begin_shutdown(self) -> None:
+        estimates = getattr(self, '_estimates', None)  # None while __init__ has not made it yet
+        if estimates is None:
+            super().begin_shutdown()
+            return
+        with estimates:
+            super().begin_shutdown()
+            estimates.notify_all()
 
     def _estimate(self, frames: list, intrinsics, stamp, frame_id: str, why: str) -> None:
         """Segment one burst of frames and publish the grids."""
