@@ -62,7 +62,4 @@ def posterior_from_grids(occupancy: np.ndarray, noise: np.ndarray, geometry: Gri
     if np.any(noise[train] < 0):
         raise ValueError('the noise map has negative variances')
     distance = signed_distance(occupied, geometry.resolution)
-    # the EDT of a binary grid puts the edge on a cell boundary; the true edge lies anywhere within the cell
-    quantisation = params.quantisation_variance_cells2 * geometry.resolution ** 2
-    return fit_gpis(distance, np.where(train, noise, 0.0), train, geometry, params, warm_start=warm_start,
-                    quantisation_m2=quantisation)
+    return fit_gpis(distance, np.where(train, noise, 0.0), train, geometry, params, warm_start=warm_start)

@@ -119,7 +119,7 @@ def sklearn_ml_fit(g: GridGeometry, sdf: np.ndarray, noise: np.ndarray, mask: np
     from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 
     (c_lo, c_hi), (l_lo, l_hi) = hyperparameter_bounds(g, params, max(0.0, -float(sdf.min())))
-    band = np.flatnonzero(np.abs(sdf[mask]) <= params.search_band_m)
+    band = np.flatnonzero(np.abs(sdf[mask]) <= params.search_band_cells * g.resolution)
     rng = np.random.default_rng(params.seed)
     cells = rng.choice(band, min(band.size, params.max_opt_points), replace=False)
     x, y = g.cell_centers()[mask][cells], sdf[mask][cells] - params.prior_mean
@@ -145,7 +145,7 @@ def bench_ml(m: int, repeats: int, with_sklearn: bool = True, seed: int = 0) -> 
     drift = timed(lambda: fit_gpis(sdf, noise, mask, g, params, warm_start=drifted(prev)), repeats)
     obs = _observations_from(g.cell_centers()[mask], sdf[mask], noise[mask],
                              gradient_observations(sdf, noise, mask, g, params.gradient_noise_variance))
-    eligible = np.abs(sdf[mask]) <= params.search_band_m
+    eligible = np.abs(sdf[mask]) <= params.search_band_cells * g.resolution
     r_in = max(0.0, -float(sdf.min()))
     s_cold = timed(lambda: fit_hyperparameters(g, obs, params, eligible, r_in), repeats)
     s_warm = timed(lambda: fit_hyperparameters(g, obs, params, eligible, r_in, warm_start=prev), repeats)
@@ -184,7 +184,7 @@ def likelihood_throughput(m: int = 25, repeats: int = 20) -> tuple[int, float, f
     params = GpisParams()
     obs = _observations_from(g.cell_centers()[mask], sdf[mask], noise[mask],
                              gradient_observations(sdf, noise, mask, g, params.gradient_noise_variance))
-    eligible = np.abs(sdf[mask]) <= params.search_band_m
+    eligible = np.abs(sdf[mask]) <= params.search_band_cells * g.resolution
     sub = _search_subset(obs, params.max_opt_points, np.random.default_rng(params.seed), eligible)
     ws = _LikelihoodWorkspace(sub)
     resid = sub.y - np.where(sub.kind == VALUE, params.prior_mean, 0.0)

@@ -353,7 +353,7 @@ def test_hyperparameters_recovered_from_a_known_gp_values_only():
     f = prior + np.linalg.cholesky(k) @ rng.standard_normal(m * m) + math.sqrt(noise) * rng.standard_normal(m * m)
     # the value-only GP, no search band (a GP draw is not an SDF): this checks the ML machinery
     post = fit_gpis(f.reshape(m, m), np.full((m, m), noise), np.ones((m, m), bool), g,
-                    GpisParams(prior_mean=prior, search_band_m=None, max_opt_points=600, **VALUE_ONLY))
+                    GpisParams(prior_mean=prior, search_band_cells=None, max_opt_points=600, **VALUE_ONLY))
     assert post.params.signal_variance == pytest.approx(c_true, rel=0.3)
     assert post.params.length_scale == pytest.approx(l_true, rel=0.2)
     assert post.bound_hits == ()

@@ -169,8 +169,7 @@ def test_posterior_from_grids_passes_the_warm_start():
 
 
 # Log likelihood (nats, search subset) and C (m^2), l (m) of the multi-start search before the compiled
-# likelihood, the closed-form C step and the basin stop (docs/gpis-model.md, Speed), on the model of then:
-# M = 25, a search band of 3 cells, no quantisation noise (the GpisParams below).
+# likelihood, the closed-form C step and the basin stop (docs/gpis-model.md, Speed).
 PREVIOUS = {
     'A_tape_dispenser': (160.89276643753527, 2.800139880836495e-04, 0.028654444031417377),
     'B_nail': (531.2829740473343, 8.764439132310705e-05, 0.007982468465343116),
@@ -193,21 +192,13 @@ PREVIOUS = {
 
 @pytest.mark.parametrize('bag', sorted(PREVIOUS))
 def test_cold_search_finds_the_previous_optimum_on_the_shipped_bags(bag):
-    from gpis_grasp_ros.data.bags import load_bag
+    from gpis_grasp_ros.data.bags import load_bag, posterior_from_scene
     path = BAGS / f'{bag}.mcap'
     if not path.exists():
         pytest.skip(f'{path} not shipped')
-    from gpis_grasp_ros.core.gpis import GpisParams
-    from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
-    from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
-
     ll, c, ell = PREVIOUS[bag]
-    scene = load_bag(path)
-    result = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, SensingParams(grid_size=25),
-                            frame_id=scene.frame_id)
-    occ, noise, geometry = publishable_grids(result)
-    then = GpisParams(search_band_m=3.0 * geometry.resolution, quantisation_variance_cells2=0.0)
-    fit = posterior_from_grids(occ, noise, geometry, then).hyperparameter_fit
+    post, _ = posterior_from_scene(load_bag(path))
+    fit = post.hyperparameter_fit
     assert fit.log_likelihood >= ll - 1e-6 * abs(ll)
     assert fit.signal_variance == pytest.approx(c, rel=1e-4)
     assert fit.length_scale == pytest.approx(ell, rel=1e-4)

@@ -146,21 +146,21 @@ def test_gpis_settings_are_node_parameters(context):
     try:
         d = gpis.GpisParams()
         p = node.params
-        assert (p.gradient_observations, p.gradient_noise_variance, p.search_band_m, p.length_scale_min_m,
+        assert (p.gradient_observations, p.gradient_noise_variance, p.search_band_cells, p.length_scale_min_cells,
                 p.length_scale_max_extent, p.length_scale_max_thickness) == \
-            (d.gradient_observations, d.gradient_noise_variance, d.search_band_m, d.length_scale_min_m,
+            (d.gradient_observations, d.gradient_noise_variance, d.search_band_cells, d.length_scale_min_cells,
              d.length_scale_max_extent, d.length_scale_max_thickness)
         ok = node.set_parameters([Parameter('gradient_observations', value=False),
                                   Parameter('length_scale_max_thickness', value=0.0),
-                                  Parameter('search_band', value=0.0),
+                                  Parameter('search_band_cells', value=0.0),
                                   Parameter('length_scale_max_extent', value=0.25)])[0]
         assert ok.successful, ok.reason
         p = node.params
         assert p.gradient_observations is False and p.length_scale_max_thickness is None
-        assert p.search_band_m is None and p.length_scale_max_extent == 0.25
-        bad = node.set_parameters([Parameter('length_scale_min', value=0.0)])[0]
+        assert p.search_band_cells is None and p.length_scale_max_extent == 0.25
+        bad = node.set_parameters([Parameter('length_scale_min_cells', value=0.0)])[0]
         assert not bad.successful
-        assert node.params.length_scale_min_m == d.length_scale_min_m
+        assert node.params.length_scale_min_cells == d.length_scale_min_cells
         assert not node.set_parameters([Parameter('optimize_hyperparameters', value=1.5)])[0].successful  # type
         assert node.set_parameters([Parameter('max_resolution', value=0.01)])[0].successful
         inconsistent = node.set_parameters([Parameter('min_resolution', value=0.05)])[0]

@@ -70,13 +70,13 @@ def hyperparameter_bounds(geometry: GridGeometry, params: GpisParams,
                           inscribed_radius_m: float | None = None) -> tuple[tuple[float, float], tuple[float, float]]:
     """Bounds (m^2, m) for C and l (docs/gpis-model.md, Hyperparameters).
 
-    l in [max(``length_scale_min_m``, one cell), min(``length_scale_max_extent`` x E,
+    l in [``length_scale_min_cells`` cells, min(``length_scale_max_extent`` x E,
     ``length_scale_max_thickness`` x ``inscribed_radius_m``)], sqrt(C) in ``signal_std_bounds`` x E,
     E the grid's metric extent (its longer side), ``inscribed_radius_m`` the object's largest
     inscribed radius (m; None or <= 0: no thickness bound).
     """
     extent = max(geometry.size_m)
-    lo_l = max(params.length_scale_min_m, geometry.resolution)
+    lo_l = params.length_scale_min_cells * geometry.resolution
     hi_l = params.length_scale_max_extent * extent
     if params.length_scale_max_thickness is not None and inscribed_radius_m is not None and inscribed_radius_m > 0:
         hi_l = min(hi_l, params.length_scale_max_thickness * inscribed_radius_m)

@@ -55,13 +55,12 @@ class GpisParams:
     gradient_observations: bool = True  # also train on the SDF gradient (section III, derivative observations)
     gradient_noise_variance: float = 0.01  # g0: discretisation noise of one central-difference gradient component
     max_exact_points: int = 2500  # above this many training cells use the reduced-rank path
-    search_band_m: float | None = 0.015  # hyperparameter search on training cells with |SDF| <= this (m)
+    search_band_cells: float | None = 3.0  # hyperparameter search on training cells with |SDF| <= this many cells
     max_opt_points: int = 450  # observations (values + gradient components) in the hyperparameter search subset
     rank_tolerance: float = 1e-10  # relative eigenvalue cut-off of the Kronecker basis
     max_rank: int = 2000  # cap on the basis size r (memory H*W*r*8 bytes)
     blas_threads: int | None = 1  # BLAS threads during the fit (None = library default), see blas_threads()
-    length_scale_min_m: float = 0.003  # lower bound on l (m; and never below one cell; docs/gpis-model.md)
-    quantisation_variance_cells2: float = 1.0 / 12.0  # binary-grid SDF error, x resolution^2 (posterior_from_grids)
+    length_scale_min_cells: float = 1.0  # lower bound on l in grid cells (docs/gpis-model.md, Hyperparameters)
     length_scale_max_extent: float = 1.0 / 6.0  # upper bound on l as a multiple of the grid extent E
     length_scale_max_thickness: float | None = 3.0  # upper bound on l as a multiple of the inscribed radius r_in
     signal_std_bounds: tuple[float, float] = (1e-3, 10.0)  # sqrt(C) x grid extent
@@ -81,11 +80,9 @@ class GpisParams:
         if self.length_scale_max_thickness is not None and not (0 < self.length_scale_max_thickness < math.inf):
             raise ValueError('length_scale_max_thickness must be positive or None, got '
                              f'{self.length_scale_max_thickness}')
-        if not (0 < self.length_scale_min_m and 0 < self.length_scale_max_extent < math.inf):
-            raise ValueError('length_scale_min_m and length_scale_max_extent must be positive, got '
-                             f'{self.length_scale_min_m}, {self.length_scale_max_extent}')
-        if not (math.isfinite(self.quantisation_variance_cells2) and self.quantisation_variance_cells2 >= 0):
-            raise ValueError(f'quantisation_variance_cells2 must be >= 0, got {self.quantisation_variance_cells2}')
+        if not (0 < self.length_scale_min_cells and 0 < self.length_scale_max_extent < math.inf):
+            raise ValueError('length_scale_min_cells and length_scale_max_extent must be positive, got '
+                             f'{self.length_scale_min_cells}, {self.length_scale_max_extent}')
         if not (0 < self.warm_start_significance < 1):
             raise ValueError(f'warm_start_significance must be in (0, 1), got {self.warm_start_significance}')
         lo, hi = self.signal_std_bounds
@@ -216,8 +213,7 @@ def _exact_variance(chol_lower: np.ndarray, c: float, kx_star: np.ndarray, ky_st
 
 
 def fit_gpis(sdf_m: np.ndarray, noise_variance_m2: np.ndarray, train_mask: np.ndarray, geometry: GridGeometry,
-             params: GpisParams = GpisParams(), *, warm_start: HyperparameterFit | None = None,
-             quantisation_m2: float = 0.0) -> GpisPosterior:
+             params: GpisParams = GpisParams(), *, warm_start: HyperparameterFit | None = None) -> GpisPosterior:
     """GPIS posterior from a grid SDF and noise map (sections III-A, III-B, V-A).
 
     Args:
@@ -229,9 +225,6 @@ def fit_gpis(sdf_m: np.ndarray, noise_variance_m2: np.ndarray, train_mask: np.nd
         warm_start: the previous frame's :class:`HyperparameterFit` of the same scene
             (``posterior.hyperparameter_fit``): the search starts there and runs only when the
             likelihood rejects it (:func:`fit_hyperparameters`); None = cold multi-start search.
-        quantisation_m2: variance (m^2) added to every value observation but not to the gradients' (whose
-            discretisation is ``gradient_noise_variance``): the error of an SDF computed on the grid from a binary
-            occupancy, whose edge lies anywhere within its cell (``posterior_from_grids``; 0 for exact SDFs).
 
     Returns:
         :class:`GpisPosterior` with mean (eq. 1), variance (eq. 2), mean gradient, joint
@@ -253,14 +246,14 @@ def fit_gpis(sdf_m: np.ndarray, noise_variance_m2: np.ndarray, train_mask: np.nd
     gradients = None
     if params.gradient_observations:
         gradients = gradient_observations(sdf, noise, mask, geometry, params.gradient_noise_variance)
-    obs = _observations_from(centers[mask], sdf[mask], noise[mask] + float(quantisation_m2), gradients)
+    obs = _observations_from(centers[mask], sdf[mask], noise[mask], gradients)
     inscribed_radius = max(0.0, -float(sdf.min()))  # m, largest inscribed radius of the object (Thickness bound)
     with blas_threads(params.blas_threads):
         fit = None
         if params.optimize_hyperparameters:
             eligible = None
-            if params.search_band_m is not None:
-                eligible = np.abs(sdf[mask]) <= params.search_band_m
+            if params.search_band_cells is not None:
+                eligible = np.abs(sdf[mask]) <= params.search_band_cells * geometry.resolution
             fit = fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius, warm_start)
             c, ell = fit.signal_variance, fit.length_scale
         else:

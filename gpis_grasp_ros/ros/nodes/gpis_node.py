@@ -70,10 +70,10 @@ PARAMETERS = ParamTable('gpis_node', [
           'section III)', _GP),
     Param('gradient_noise_variance', float, 'noise variance g0 of one central-difference SDF gradient component',
           _GP, low=0.0, high=10.0),
-    Param('search_band', float, 'hyperparameter search on training cells with |SDF| <= this (0 = all cells)', _GP,
-          'search_band_m', unit='m', low=0.0, high=10.0, rule=ZERO_IS_NONE),
-    Param('length_scale_min', float, 'lower bound of the ML length scale l (never below one cell)', _GP,
-          'length_scale_min_m', unit='m', low=1e-4, high=1.0),
+    Param('search_band_cells', float, 'hyperparameter search on training cells with |SDF| <= this many cells '
+          '(0 = all cells)', _GP, unit='cells', low=0.0, high=1000.0, rule=ZERO_IS_NONE),
+    Param('length_scale_min_cells', float, 'lower bound of the ML length scale l', _GP, unit='cells',
+          low=0.1, high=100.0),
     Param('length_scale_max_extent', float, 'upper bound of l as a fraction of the grid extent', _GP,
           low=0.01, high=10.0),
     Param('length_scale_max_thickness', float, "upper bound of l as a multiple of the object's largest inscribed "
