@@ -20,9 +20,8 @@ def execute_grasp_trials(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw1
 
     Each trial perturbs the jaws with σ_g (V-B), closes them on ``true_sdf`` (m, on
     ``true_geometry``, which may differ from the planning grid — everything is metric) and checks
-    Q_F > 0 with normals from the true SDF's finite differences. σ_g is
-    ``gripper.position_noise`` when set (resolve it on the planning grid with
-    ``GripperParams.resolved``), else ``position_noise_cells`` cells of ``true_geometry``.
+    Q_F > 0 with normals from the true SDF's finite differences, with the same gripper, perturbation
+    model and force-closure test as Monte-Carlo P_F (σ_g = ``gripper.position_noise``, m).
     ``center_of_mass`` (m) defaults to that of {true_sdf < 0}. A commanded opening above w_g
     fails every trial.
     """
@@ -35,7 +34,7 @@ def execute_grasp_trials(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw1
     com = sdf_center_of_mass(sdf[None], true_geometry)[0] if center_of_mass is None else np.asarray(center_of_mass)
     rho = torque_scale(sdf, true_geometry, com)
     eps = rng.standard_normal((int(trials), 2, 2))
-    g1, g2 = perturb_grasps(jaw1, jaw2, eps, gripper.sigma_g(true_geometry))
+    g1, g2 = perturb_grasps(jaw1, jaw2, eps, gripper.sigma_g)
     con = find_contacts(bank, g1, g2, gripper, check_opening=False)
     q = grasp_quality(con, com, gripper, rho)
     return int(np.count_nonzero(q > 0))

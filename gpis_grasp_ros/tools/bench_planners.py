@@ -486,7 +486,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # Vectorised P_F vs the per-sample Python loop, same samples and perturbations.
     gr = params.gripper
-    sigma = gr.sigma_g(g)
+    sigma = gr.sigma_g
     samples = draw_shape_samples(post, args.loop_samples, np.random.default_rng(args.seed + 12345))
     t_vec, est = _median_of(lambda: probability_force_closure(res_g.jaw1[None], res_g.jaw2[None], samples, gr,
                                                               sigma), max(3, args.repeats))

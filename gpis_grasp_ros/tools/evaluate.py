@@ -96,7 +96,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--fresh', action='store_true', help='discard earlier results in --out instead of resuming')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
     d = EvalSettings()
-    parser.add_argument('--grid-size', type=int, default=d.grid_size)
+    parser.add_argument('--grid-size', type=int, default=d.grid_size,
+                        help=f'force M of the M x M GPIS grid (default {d.grid_size}; 0 = from the object and the '
+                             'cell size)')
     parser.add_argument('--frames', type=int, default=d.frames)
     parser.add_argument('--grasp-samples', type=int, default=d.grasp_samples)
     parser.add_argument('--shape-samples', type=int, default=d.shape_samples)

@@ -25,6 +25,8 @@ import numpy as np
 
 from gpis_grasp_ros.core.noise_model import SENSOR_MODELS
 from gpis_grasp_ros.core.planners import METHODS
+from gpis_grasp_ros.core.planners.params import UNCERTAINTY_PENALTY
+from gpis_grasp_ros.core.sensing.params import SensingParams
 from gpis_grasp_ros.data import rgbd_import as ri
 from gpis_grasp_ros.tools.evaluation.real import evaluate_seeds
 
@@ -79,16 +81,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--seeds', type=int, default=1,
                    help='--evaluate: run seeds SEED ... SEED + SEEDS - 1 and print their successes and mean '
                         '(default 1)')
-    p.add_argument('--grid-size', type=int, default=25,
-                   help='--evaluate: M of the M x M planning grid, cells (default 25)')
+    p.add_argument('--grid-size', type=int, default=SensingParams.grid_size,
+                   help=f'--evaluate: force M of the M x M planning grid, cells (default {SensingParams.grid_size}, as '
+                        'segmentation_node; 0 = from the object and the cell size)')
     p.add_argument('--method', default='gp-gpis-opt', choices=METHODS,
                    help='--evaluate: planner (default gp-gpis-opt, as planner_node)')
     p.add_argument('--clear-body-height', type=float, default=0.0, metavar='M',
                    help='--evaluate: a clear target body\'s known height in m (segmentation_node\'s '
                         'clear_body_height; default 0 = the priors)')
     p.add_argument('--lambda', dest='uncertainty_penalty', type=float, default=None, metavar='L',
-                   help='--evaluate: λ of eq. 4/6 per cell² of SDF variance (planner_node\'s uncertainty_penalty; '
-                        'default: its default, 2)')
+                   help='--evaluate: λ of eq. 4/6 per m² of SDF variance (planner_node\'s uncertainty_penalty; '
+                        f'default: its default, {UNCERTAINTY_PENALTY:g})')
     p.add_argument('--oracle', action='store_true',
                    help='--evaluate: plan on the ground truth sampled at the planning grid (the best any perception '
                         'can do at that resolution) instead of the perceived shape (default: the perceived shape)')

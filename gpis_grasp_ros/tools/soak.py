@@ -282,7 +282,7 @@ class Soak:
         x0, y0 = com.x, com.y
         plans = [
             GraspPlan.Request(method='gp-nonsense'), GraspPlan.Request(uncertainty_penalty=nan),
-            GraspPlan.Request(uncertainty_penalty=math.inf), GraspPlan.Request(uncertainty_penalty=1e6),
+            GraspPlan.Request(uncertainty_penalty=math.inf), GraspPlan.Request(uncertainty_penalty=1e12),
             GraspPlan.Request(method='gp-gpis-opt', num_initial_grasps=10 ** 6),
             GraspPlan.Request(method='gp-m', num_initial_grasps=10 ** 7), GraspPlan.Request(method='gp-gpis-opt!'),
         ]

@@ -1,12 +1,12 @@
 """``gpis-grasp tune``: k-fold cross-validation of λ and α on a dataset (paper section VI-A).
 
-    gpis-grasp tune --dataset DIR --out DIR --lambda 0,0.5,1,2,4,8 --alpha 0.25,0.5,1,2 --folds 5
+    gpis-grasp tune --dataset DIR --out DIR --lambda 0,1e4,2e4,5e4,1e5,2e5,5e5 --alpha 0.25,0.5,1,2 --folds 5
                     [--method gp-gpis-opt] [--seeds 1] [--executor serial|process|dask] [--workers N]
                     [--reuse EVAL_DIR] ...
 
 **What is tuned.** λ is ``uncertainty_penalty`` of :class:`~gpis_grasp_ros.core.planners.PlannerParams`,
-the penalty on the SDF variance at the contacts in eq. 4/6 (per cell² of variance; the paper picks
-λ = 2 "based on a grid search using the set of validation shapes" and says "λ can be set using
+the penalty on the SDF variance at the contacts in eq. 4/6 (per m² of variance, so independent of the grid; the
+paper picks λ = 2 per cell² "based on a grid search using the set of validation shapes" and says "λ can be set using
 cross-validation over a set of validation shapes"). α is ``antipodal_alpha``, the bound of the first
 antipodal constraint of eq. 5, ‖n1 + n2‖² <= α ("α may be set using cross-validation", section VI-B):
 with unit normals ‖n1 + n2‖² = 4 sin²(φ/2), φ the angle between n1 and −n2, so α = 0.5 allows
@@ -33,7 +33,7 @@ camera (:func:`class_table`): which kind of object a λ helps or hurts.
 **Reusing an evaluation.** ``--reuse DIR`` takes the rows of an earlier ``gpis-grasp evaluate`` (or
 tune ``runs/``) folder that are tasks of this tune — same dataset digest and settings (``run.json``),
 same method, object, seed, λ and α (a default λ/α is matched by its value) — instead of running them
-again (:func:`reuse_rows`): e.g. the λ = 2 column of a tune is the GP-GPIS-OPT column of an
+again (:func:`reuse_rows`): e.g. the default-λ column of a tune is the GP-GPIS-OPT column of an
 evaluation at the default λ. Rows are identical whatever the run (see :mod:`~gpis_grasp_ros.tools.evaluation`)
 as long as the code is the same; each reused row records its source in ``reused_from``.
 """
@@ -57,7 +57,7 @@ from gpis_grasp_ros.tools.evaluation.reports import prepare_out, read_results, w
 from gpis_grasp_ros.tools.evaluation.runner import fingerprint, run_evaluation
 from gpis_grasp_ros.tools.evaluation.tasks import Task, make_tasks
 
-DEFAULT_LAMBDAS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
+DEFAULT_LAMBDAS = (0.0, 1e4, 2e4, 5e4, 1e5, 2e5, 5e5)  # per m² of SDF variance
 DEFAULT_ALPHAS = (0.5,)
 
 
@@ -260,11 +260,11 @@ def plot(cv: CvResult, path: Path) -> None:
         ax.errorbar(lambdas, mean, yerr=std, marker='o', capsize=3, label=f'α = {a:g}')
     lam_c, a_c = cv.settings[cv.chosen]
     ax.plot([lam_c], [cv.fold_heldout[:, cv.chosen].mean()], 'o', ms=14, mfc='none', mec='k', label='chosen')
-    ax.set_xscale('symlog', linthresh=max(0.1, min([v for v in lambdas if v > 0] or [1.0])))
+    ax.set_xscale('symlog', linthresh=min([v for v in lambdas if v > 0] or [1.0]))
     ax.set_xticks(lambdas)
     ax.set_xticklabels([f'{v:g}' for v in lambdas])
     ax.minorticks_off()
-    ax.set_xlabel('λ (uncertainty penalty, per cell² of SDF variance)')
+    ax.set_xlabel('λ (uncertainty penalty, per m² of SDF variance)')
     ax.set_ylabel('held-out simulated success rate')
     ax.set_title(f'{len(cv.folds)}-fold cross-validation, {len(cv.objects)} objects')
     ax.grid(alpha=0.3)
@@ -300,7 +300,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_run_arguments(p)
     p.add_argument('--lambda', dest='lambdas', type=floats, default=list(DEFAULT_LAMBDAS),
-                   help='λ grid (default: 0,0.5,1,2,4,8)')
+                   help='λ grid, per m² of SDF variance (default: 0,1e4,2e4,5e4,1e5,2e5,5e5)')
     p.add_argument('--alpha', dest='alphas', type=floats, default=list(DEFAULT_ALPHAS),
                    help='α grid (default: 0.5)')
     p.add_argument('--folds', type=int, default=5)

@@ -25,10 +25,12 @@ def _directions(n: int, rng: np.random.Generator) -> np.ndarray:
 
 def test_gripper_params_units() -> None:
     gr = GripperParams()
-    assert gr.sigma_g(G) == pytest.approx(0.5 * RES)  # paper: sigma_g^2 = 0.25 cells^2
-    assert GripperParams.position_noise_from_cells(0.5, G) == pytest.approx(0.0025)
-    assert gr.resolved(G).position_noise == pytest.approx(0.0025)
-    assert GripperParams(position_noise=0.001).sigma_g(G) == 0.001
+    assert gr.sigma_g == pytest.approx(0.003)  # metres, whatever the grid
+    assert GripperParams(position_noise=0.001).sigma_g == 0.001
+    assert gr.patch_cells(G) == pytest.approx(0.002 / RES)  # the metric patch tolerance in cells of the grid closed on
+    for bad in (dict(position_noise=-0.001), dict(position_noise=math.nan), dict(contact_patch=0.0)):
+        with pytest.raises(ValueError):
+            GripperParams(**bad)
     assert gr.beta == pytest.approx(1 / math.sqrt(1 + 0.25))
     off = gr.face_offsets(G)
     assert off[0] == pytest.approx(-0.005) and off[-1] == pytest.approx(0.005)

@@ -180,15 +180,15 @@ def test_pf_certain_rectangle_centred_grasp_is_one() -> None:
     gr = GripperParams()
     j1 = np.array([CENTRE - [0.045, 0], CENTRE - [0, 0.045]])
     j2 = np.array([CENTRE + [0.045, 0], CENTRE + [0, 0.045]])
-    est = probability_force_closure(j1, j2, samples, gr, gr.sigma_g(G))
+    est = probability_force_closure(j1, j2, samples, gr, gr.sigma_g)
     assert np.all(est.p >= 0.98)
     # closing at 35° to the face normals (> arctan γ = 26.6°) is never force closure
     u = np.array([math.sin(math.radians(35)), math.cos(math.radians(35))])
     tilted = probability_force_closure((CENTRE - 0.045 * u)[None], (CENTRE + 0.045 * u)[None], samples, gr,
-                                       gr.sigma_g(G))
+                                       gr.sigma_g)
     assert tilted.p[0] <= 0.05
     # a grasp wider than the gripper always fails
-    wide = probability_force_closure(CENTRE[None] - [0.05, 0], CENTRE[None] + [0.05, 0], samples, gr, gr.sigma_g(G))
+    wide = probability_force_closure(CENTRE[None] - [0.05, 0], CENTRE[None] + [0.05, 0], samples, gr, gr.sigma_g)
     assert wide.p[0] == 0.0 and wide.successes[0] == 0
 
 
@@ -201,7 +201,7 @@ def test_pf_falls_with_shape_uncertainty() -> None:
     for std_cells in (0.1, 1.0, 2.0, 5.0):
         post = make_posterior(mean, G, std_cells * G.resolution)
         samples = draw_shape_samples(post, 800, np.random.default_rng(4))
-        p.append(probability_force_closure(j1, j2, samples, gr, gr.sigma_g(G)).p[0])
+        p.append(probability_force_closure(j1, j2, samples, gr, gr.sigma_g).p[0])
     assert p[0] >= 0.98
     assert all(a > b for a, b in zip(p, p[1:], strict=False))
     assert p[-1] <= 0.3
@@ -215,7 +215,7 @@ def test_pf_standard_error_shrinks_like_inverse_sqrt() -> None:
     rng = np.random.default_rng(5)
     spread = {}
     for n in (50, 800):
-        est = [probability_force_closure(j1, j2, draw_shape_samples(post, n, rng), gr, gr.sigma_g(G))
+        est = [probability_force_closure(j1, j2, draw_shape_samples(post, n, rng), gr, gr.sigma_g)
                for _ in range(24 if n == 50 else 6)]
         p = np.array([e.p[0] for e in est])
         se = np.array([e.std_error[0] for e in est])
@@ -238,8 +238,8 @@ def test_vectorised_pf_equals_per_sample_loop() -> None:
     u = np.stack([np.cos(ang), np.sin(ang)], axis=1)
     j1 = CENTRE - 0.045 * u + rng.normal(0, 0.003, (6, 2))
     j2 = j1 + 0.09 * u
-    est = probability_force_closure(j1, j2, samples, gr, gr.sigma_g(G))
-    loop = np.array([pf_python_loop(a, b, samples, gr, gr.sigma_g(G))[1] for a, b in zip(j1, j2, strict=True)])
+    est = probability_force_closure(j1, j2, samples, gr, gr.sigma_g)
+    loop = np.array([pf_python_loop(a, b, samples, gr, gr.sigma_g)[1] for a, b in zip(j1, j2, strict=True)])
     assert np.abs(est.successes - loop).max() <= 1
     assert est.successes.sum() > 0
 

@@ -16,6 +16,7 @@ from gpis_grasp_ros.core.sensing import (
     frames_from_clouds,
     segment_frames,
 )
+from gpis_grasp_ros.core.sensing.rasterise import grid_cells
 
 TABLE_Z = 0.7
 TABLE_RGB = np.array([120.0, 120.0, 120.0])
@@ -98,7 +99,8 @@ def scene():
 def test_geometry_is_a_square_metric_grid_around_box_and_transparent_part(scene):
     result, _, _ = scene
     g = result.geometry
-    assert g.shape == (25, 25) and g.frame_id == 'camera_optical'
+    m = grid_cells(g.size_m[0], SensingParams())  # M from the default rule (a forced M or the cell size)
+    assert g.shape == (m, m) and m >= 25 and g.frame_id == 'camera_optical'
     assert g.z == pytest.approx(TABLE_Z, abs=1e-3) and result.table_depth == g.z
     # object bounding box x in [-0.04, 0.04], y in [-0.02, 0.02]; 20 % margin on each side
     assert g.size_m[0] == pytest.approx(0.08 * 1.4, rel=0.05)

@@ -104,8 +104,8 @@ def test_defaults_come_from_the_library_dataclasses():
 
 
 def test_gripper_is_one_group_in_metres(context):
-    """planner_node and gripper_sim_node share the gripper; sigma_g is in metres, negative = half a cell of the
-    grid the jaws close on (the planner's default, the paper's sigma_g^2 = 0.25 cells^2)."""
+    """planner_node and gripper_sim_node share the gripper, in metres on every grid: the same defaults, so P_F
+    predicts what the simulated gripper executes."""
     from gpis_grasp_ros.core import gripper
     from gpis_grasp_ros.core.grid import GridGeometry
     from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
@@ -121,13 +121,12 @@ def test_gripper_is_one_group_in_metres(context):
     try:
         g = planner.config.gripper
         assert g == gripper.GripperParams(jaw_width=0.01, max_opening=0.09, friction_coef=0.5,
-                                           position_noise_cells=0.5)
+                                           position_noise=0.003, contact_patch=0.002)
+        assert sim.gripper == g
         geometry = GridGeometry(0.0, 0.0, 0.004, 25, 25, 0.7, 'cam')
-        assert g.sigma_g(geometry) == 0.5 * 0.004 and g.patch_cells(geometry) == 0.5
-        assert sim.gripper == gripper.GripperParams(jaw_width=0.01, max_opening=0.09, friction_coef=0.5,
-                                                     position_noise=0.003, contact_patch=0.003)
+        assert g.sigma_g == 0.003 and g.patch_cells(geometry) == 0.5
         assert planner.set_parameters([Parameter('position_noise', value=0.002)])[0].successful
-        assert planner.config.gripper.sigma_g(geometry) == 0.002
+        assert planner.config.gripper.sigma_g == 0.002
         zero_patch = sim.set_parameters([Parameter('contact_patch', value=0.0)])[0]
         assert not zero_patch.successful and 'contact patch' in zero_patch.reason
         assert not sim.set_parameters([Parameter('position_noise', value=0.5)])[0].successful

@@ -8,8 +8,9 @@ import numpy as np
 
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.gripper import GripperParams
+from gpis_grasp_ros.core.quality import draw_shape_samples, probability_force_closure
 from gpis_grasp_ros.sim.execution import execute_grasp_trials
-from support.synthetic_shapes import make_geometry, rectangle_sdf
+from support.synthetic_shapes import make_posterior, rectangle_sdf
 
 
 def test_execute_grasp_trials_on_a_finer_true_grid() -> None:
@@ -17,7 +18,7 @@ def test_execute_grasp_trials_on_a_finer_true_grid() -> None:
     true_g = GridGeometry(-0.02, -0.01, 0.002, 80, 80)
     c = np.array([0.0625, 0.0625])
     true_sdf = rectangle_sdf(true_g, tuple(c), (0.015, 0.01))
-    gripper = GripperParams().resolved(make_geometry())  # σ_g fixed on the 5 mm planning grid
+    gripper = GripperParams()  # σ_g in metres: the same on the planning grid and on the true grid
     rng = np.random.default_rng(0)
     good = execute_grasp_trials(true_sdf, true_g, c - [0.045, 0], c + [0.045, 0], gripper, 200, rng)
     assert good >= 195
@@ -27,3 +28,42 @@ def test_execute_grasp_trials_on_a_finer_true_grid() -> None:
     assert too_wide == 0
     tilted = np.array([math.sin(math.radians(33)), math.cos(math.radians(33))])  # > arctan γ from the normal
     assert execute_grasp_trials(true_sdf, true_g, c - 0.045 * tilted, c + 0.045 * tilted, gripper, 50, rng) <= 5
+
+
+def _pf_and_execution(truth: np.ndarray, truth_g: GridGeometry, plan_sdf: np.ndarray, plan_g: GridGeometry,
+                      n_grasps: int, trials: int) -> tuple[np.ndarray, np.ndarray]:
+    """P_F of random grasps on a zero-variance posterior of ``plan_sdf`` and their closure rate on ``truth``."""
+    post = make_posterior(plan_sdf, plan_g, 0.0)  # zero variance: every shape sample is the mean
+    gripper = GripperParams()
+    samples = draw_shape_samples(post, trials, np.random.default_rng(1))
+    rng = np.random.default_rng(2)
+    centre = np.array([0.0625, 0.0625]) + rng.uniform(-0.012, 0.012, (n_grasps, 2))
+    angle = rng.uniform(0.0, np.pi, n_grasps)
+    axis = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    j1, j2 = centre - 0.04 * axis, centre + 0.04 * axis
+    pf = probability_force_closure(j1, j2, samples, gripper, gripper.sigma_g).p
+    ex = np.array([execute_grasp_trials(truth, truth_g, a, b, gripper, trials, rng) for a, b in zip(j1, j2,
+                                                                                                   strict=True)])
+    return pf, ex / trials
+
+
+def _lozenge(g: GridGeometry) -> np.ndarray:
+    """A rounded, notched rectangle: flat faces, corners and a notch give closure rates between 0 and 1."""
+    c = (0.0625, 0.0625)
+    body = rectangle_sdf(g, c, (0.016, 0.009), angle=0.3) - 0.003
+    return np.maximum(body, -rectangle_sdf(g, (0.0625 + 0.012, 0.0625 + 0.008), (0.005, 0.005)))
+
+
+def test_pf_on_a_certain_posterior_is_the_simulated_closure_rate() -> None:
+    """One execution model: a grasp's P_F on a posterior that IS the truth (zero variance) is its closure rate
+    in simulated execution on that truth - same gripper, jaw noise, contacts and force-closure test - up to
+    Monte-Carlo error (400 draws each: std of a difference <= 0.035, fixed seeds)."""
+    g = GridGeometry(0.0, 0.0, 0.005, 25, 25)
+    sdf = _lozenge(g)
+    pf, rate = _pf_and_execution(sdf, g, sdf, g, 200, 400)
+    between = (pf > 0.05) & (pf < 0.95)
+    assert between.sum() >= 30  # the test exercises grasps whose outcome the jaw noise decides
+    assert np.max(np.abs(pf - rate)) <= 0.05 + 3.5 * 0.035  # every grasp, a 4.5-sigma Monte-Carlo band
+    assert np.mean(np.abs(pf - rate)) <= 0.05
+    assert abs(np.mean(pf - rate)) <= 0.01  # no bias
+

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from gpis_grasp_ros.core.planners.params import UNCERTAINTY_PENALTY
 from gpis_grasp_ros.sim import dataset as ds
 from gpis_grasp_ros.tools import evaluate, tune
 from gpis_grasp_ros.tools.evaluation.reports import read_results
@@ -81,30 +82,32 @@ def test_tune_command_end_to_end(tmp_path, capsys):
     out = tmp_path / 'tune'
     tiny = ['--grid-size', '12', '--frames', '2', '--grasp-samples', '20', '--shape-samples', '20',
             '--initial-grasps', '2', '--trials', '8', '--no-progress']
-    # an evaluation of GP-GPIS-OPT at the default λ (2) and α (0.5): the λ = 2 column of the tune
+    # an evaluation of GP-GPIS-OPT at the default λ (5e4 per m²) and α (0.5): the default-λ column of the tune
     evaluation = tmp_path / 'eval'
     args = ['--dataset', str(data.root), '--out', str(evaluation), '--methods', 'gp-gpis-opt']
     assert evaluate.main(args + tiny) == 0
     evaluated = {r['object']: r for r in read_results(evaluation)}
-    assert {(r['lambda'], r['alpha']) for r in evaluated.values()} == {(2.0, 0.5)}
+    assert {(r['lambda'], r['alpha']) for r in evaluated.values()} == {(UNCERTAINTY_PENALTY, 0.5)}
     capsys.readouterr()
-    args = ['--dataset', str(data.root), '--out', str(out), '--lambda', '0,2', '--alpha', '0.5', '--folds', '2'] + tiny
+    args = ['--dataset', str(data.root), '--out', str(out), '--lambda', f'0,{UNCERTAINTY_PENALTY:g}', '--alpha', '0.5',
+            '--folds', '2'] + tiny
     assert tune.main(args + ['--reuse', str(evaluation)]) == 0
     text = capsys.readouterr().out
     assert 'Chosen by 2-fold cross-validation' in text
     assert '8 tasks: 4 run now, 0 from earlier runs in this folder, 4 reused' in text
     result = json.loads((out / 'tune.json').read_text())
-    assert (result['chosen']['lambda'], result['chosen']['alpha']) in [(0.0, 0.5), (2.0, 0.5)]
+    assert (result['chosen']['lambda'], result['chosen']['alpha']) in [(0.0, 0.5), (UNCERTAINTY_PENALTY, 0.5)]
     assert len(result['fold_choice']) == 2
     image = cv2.imread(str(out / 'tune.png'))
     assert image is not None and image.shape[0] > 200 and image.shape[1] > 300 and image.std() > 5
     runs = [json.loads(x) for x in (out / 'runs' / 'results.jsonl').read_text().splitlines()]
     assert len(runs) == 8 and {r['method'] for r in runs} == {'gp-gpis-opt'}
-    assert {r['lambda'] for r in runs} == {0.0, 2.0}
+    assert {r['lambda'] for r in runs} == {0.0, UNCERTAINTY_PENALTY}
     # the reused rows are the evaluation's, relabelled with the tune's task ids
     for r in runs:
-        if r['lambda'] == 2.0:
-            assert r['reused_from'] == str(evaluation) and r['task_id'].endswith('|lambda=2.0|alpha=0.5|seed=0')
+        if r['lambda'] == UNCERTAINTY_PENALTY:
+            assert r['reused_from'] == str(evaluation) and r['task_id'].endswith(
+                f'|lambda={UNCERTAINTY_PENALTY!r}|alpha=0.5|seed=0')
             assert {k: v for k, v in r.items() if k not in ('task_id', 'reused_from')} == \
                 {k: v for k, v in evaluated[r['object']].items() if k != 'task_id'}
         else:

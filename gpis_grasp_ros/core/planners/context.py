@@ -32,12 +32,12 @@ class PlanningContext:
         self.geometry: GridGeometry = posterior.geometry
         self.res = self.geometry.resolution
         self.gripper = params.gripper
-        self.sigma_g = self.gripper.sigma_g(self.geometry)
+        self.sigma_g = self.gripper.sigma_g
         self.mean_bank = SdfBank(posterior.mean, self.geometry, gradients=posterior.gradient)
         self.com = posterior.center_of_mass()
         self.rho = torque_scale(posterior.mean, self.geometry, self.com)
-        self.variance_cells = np.asarray(posterior.variance, dtype=np.float64) / self.res ** 2
-        self.max_variance_cells = float(np.max(self.variance_cells))
+        self.variance = np.asarray(posterior.variance, dtype=np.float64)  # m²
+        self.max_variance = float(np.max(self.variance))
         self.surface = mean_surface_points(posterior.mean, self.geometry)
 
     # -- evaluation on the mean shape -------------------------------------------------------

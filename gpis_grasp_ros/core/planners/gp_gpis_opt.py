@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from gpis_grasp_ros.core.planners.context import PlanningContext, finish, stoppable
-from gpis_grasp_ros.core.planners.objective import MeanGraspObjective
+from gpis_grasp_ros.core.planners.objective import SCP_UNIT_M, MeanGraspObjective
 from gpis_grasp_ros.core.planners.params import PlannerParams
 from gpis_grasp_ros.core.planners.result import GraspResult, RestartInfo, Tracker, empty_result
 from gpis_grasp_ros.core.planners.sampling import sample_valid_grasps
@@ -21,11 +21,12 @@ SCP_EVAL_CHUNK = 128
 
 
 def _scp_settings(params: PlannerParams) -> ScpSettings:
-    return ScpSettings(fd_step=params.fd_step_cells, trust_radius_init=params.trust_radius_cells,
-                       trust_radius_min=params.trust_radius_min_cells,
-                       trust_radius_max=params.trust_radius_max_cells, max_iterations=params.max_scp_iterations,
+    u = SCP_UNIT_M  # lengths in metres -> SCP units
+    return ScpSettings(fd_step=params.fd_step_m / u, trust_radius_init=params.trust_radius_m / u,
+                       trust_radius_min=params.trust_radius_min_m / u,
+                       trust_radius_max=params.trust_radius_max_m / u, max_iterations=params.max_scp_iterations,
                        constraint_tol=params.constraint_tol, penalty_init=10.0, penalty_factor=10.0,
-                       penalty_max=1e3, improve_tol=params.scp_model_tol, step_tol=params.scp_step_tol_cells,
+                       penalty_max=1e3, improve_tol=params.scp_model_tol, step_tol=params.scp_step_tol_m / u,
                        objective_tol=params.scp_objective_tol, accept_ratio=0.1, trust_shrink=0.3, trust_expand=2.0,
                        prox=1e-8, prox_rel=0.1, osqp_eps=1e-4, osqp_max_iter=4000,
                        trust_expand_from_step=True, prox_penalty_weight=0.01,
@@ -44,12 +45,12 @@ def optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, a
         return empty_result(method, 'no valid initial grasp found on the mean shape', t_start, seed)
     tracker.total = j1.shape[0]
     g = ctx.geometry
-    x0 = np.concatenate([g.to_cell(j1), g.to_cell(j2)], axis=1)
+    x0 = MeanGraspObjective.variables(j1, j2)
     eps = rngs['perturbations'].standard_normal((params.n_perturbations, 2, 2))
     objective = MeanGraspObjective(ctx, eps, penalty, antipodal)
-    pad = ctx.mean_bank.pad
-    lower = np.full(4, -float(pad))
-    upper = np.array([g.width - 1 + pad, g.height - 1 + pad] * 2, dtype=np.float64)
+    pad = ctx.mean_bank.pad  # jaws may start up to the bank's padding beyond the outer cell centres
+    lo, hi = g.to_metric(np.array([-float(pad)] * 2)), g.to_metric(np.array([g.width - 1 + pad, g.height - 1 + pad]))
+    lower, upper = np.tile(lo, 2) / SCP_UNIT_M, np.tile(hi, 2) / SCP_UNIT_M
     monitor = _ScpMonitor(objective, tracker, x0.shape[0], params.constraint_tol)
     poll = tracker.check if tracker.control is not None else None
     res: ScpResult = scp_minimize(objective, x0, _scp_settings(params), lower=lower, upper=upper, monitor=monitor,
@@ -60,7 +61,7 @@ def optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, a
     x_opt = res.x.copy()
     a, b = x_opt[:, 0:2], x_opt[:, 2:4]
     width = np.linalg.norm(b - a, axis=1)
-    w_max = ctx.gripper.max_opening / ctx.res
+    w_max = ctx.gripper.max_opening / SCP_UNIT_M
     shrink = np.where(width > w_max, w_max / np.maximum(width, 1e-12), 1.0)[:, None]
     centre = 0.5 * (a + b)
     x_opt = np.concatenate([centre + (a - centre) * shrink, centre + (b - centre) * shrink], axis=1)

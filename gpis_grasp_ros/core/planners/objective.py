@@ -10,13 +10,19 @@ from gpis_grasp_ros.core.planners.context import PlanningContext
 from gpis_grasp_ros.core.quality import grasp_quality
 from gpis_grasp_ros.core.sdf_bank import bilinear
 
+#: Length (m) of one unit of the SCP's variables: jaw positions, finite-difference steps, trust radii, step
+#: tolerances and the length constraints are measured in it. Fixed in metres, so the optimisation is the same
+#: on every planning grid (the SCP settings were tuned on 5 mm cells, where one unit was one cell).
+SCP_UNIT_M = 0.005
+
 
 class MeanGraspObjective:
     """Eq. 6 on the mean shape as a batch function for :func:`scp_minimize` (minimisation form).
 
-    ``x = (col1, row1, col2, row2)`` (cells). Returns ``F = −P̃_F + λ(σ²(c1) + σ²(c2))`` (σ² in
-    cells², c on the mean shape for the unperturbed grasp) and constraints ``G <= 0``:
-    opening (cells), clearance of jaw 1 and 2 (cells), and with ``antipodal`` the three
+    ``x = (x1, y1, x2, y2)`` / :data:`SCP_UNIT_M` (grid frame). Returns ``F = −P̃_F + λ(σ²(c1) + σ²(c2))``
+    (σ² in m², λ per m², c on the mean shape for the unperturbed grasp; without contact the largest σ²) and
+    constraints ``G <= 0``:
+    opening, clearance of jaw 1 and 2 (all in SCP units), and with ``antipodal`` the three
     constraints of eq. 5 (see docs/planning.md).
     """
 
@@ -28,9 +34,16 @@ class MeanGraspObjective:
         self.n_constraints = 6 if antipodal else 3
         self.trials = 0
 
-    def jaws(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        g = self.ctx.geometry
-        return g.to_metric(x[..., 0:2]), g.to_metric(x[..., 2:4])
+    @staticmethod
+    def variables(jaw1: np.ndarray, jaw2: np.ndarray) -> np.ndarray:
+        """SCP variables ``(..., 4)`` of jaws ``(..., 2)`` (m)."""
+        return np.concatenate([np.asarray(jaw1, dtype=np.float64), np.asarray(jaw2, dtype=np.float64)],
+                              axis=-1) / SCP_UNIT_M
+
+    @staticmethod
+    def jaws(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Jaws (m) of SCP variables ``x``."""
+        return x[..., 0:2] * SCP_UNIT_M, x[..., 2:4] * SCP_UNIT_M
 
     def details(self, x: np.ndarray) -> dict[str, np.ndarray]:
         ctx = self.ctx
@@ -47,21 +60,21 @@ class MeanGraspObjective:
             smooth = 1.0 / (1.0 + np.exp(-q[:, 1:] / ctx.params.smoothing_scale))
         pf = smooth.mean(axis=1) if self.eps.shape[0] else np.zeros(b)
         ok = ~con.no_contact[:, 0]
-        var = np.full((b, 2), ctx.max_variance_cells)
+        var = np.full((b, 2), ctx.max_variance)
         if ok.any():
             pts = np.stack([con.c1[ok, 0], con.c2[ok, 0]], axis=1)
-            var[ok] = bilinear(ctx.variance_cells, ctx.geometry, pts)
+            var[ok] = bilinear(ctx.variance, ctx.geometry, pts)
         unc = var.sum(axis=1)
         objective = -pf + self.penalty * unc
-        res = ctx.res
+        unit = SCP_UNIT_M
         width = np.linalg.norm(j2 - j1, axis=1)
-        cons = [(width - ctx.gripper.max_opening) / res, -con.clearance1[:, 0] / res, -con.clearance2[:, 0] / res]
+        cons = [(width - ctx.gripper.max_opening) / unit, -con.clearance1[:, 0] / unit, -con.clearance2[:, 0] / unit]
         if self.antipodal:
             n1, n2 = con.n1[:, 0], con.n2[:, 0]
             # Eq. 5 on the contact line v = (c1 − c2)/‖c1 − c2‖ (see docs/planning.md).
             line = con.c1[:, 0] - con.c2[:, 0]
             dist = np.hypot(line[:, 0], line[:, 1])
-            has_line = con.valid[:, 0] & (dist > 1e-9 * res)
+            has_line = con.valid[:, 0] & (dist > 1e-9 * unit)
             v = line / np.where(has_line, dist, 1.0)[:, None]
             beta, alpha = ctx.params.beta + 2.0 * ctx.params.constraint_tol, ctx.params.antipodal_alpha
             c_alpha = np.where(has_line, np.sum((n1 + n2) ** 2, axis=1) - alpha, 4.0 - alpha)

@@ -91,7 +91,7 @@ def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_h
     uncertain = missing | disagree
     unknown = missing.copy()
     foreign = _foreign_missing_fraction(cells.row, cells.col, cells.in_grid, cells.informative,
-                                        missing_px & ~target_px & ~off_hull, params.grid_size
+                                        missing_px & ~target_px & ~off_hull, geometry.width
                                         ) > params.missing_cell_fraction
     uncertain |= foreign
     trained_clear = behind | (body & params.train_clear_body)  # a clear body's prism, trained
@@ -101,7 +101,7 @@ def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_h
     occ_bin = cells.occupancy >= 0.5
     if not occ_bin.any():
         raise ValueError('no object found: the target evidence is too weak for any grid cell to be occupied '
-                         '(lower grid_size or the thresholds)')
+                         '(coarser cells or lower thresholds)')
     noise = np.where(cells.observed, noise, params.unobserved_variance_m2)
     train_mask = ~unknown
     sdf_object = occ_bin | ~train_mask  # what the GPIS's SDF treats as object (pipeline.publishable_grids)

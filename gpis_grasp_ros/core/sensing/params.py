@@ -54,7 +54,10 @@ def _box(value: Sequence[float] | None, name: str) -> tuple[float, float, float,
 class SensingParams:
     """Settings of :func:`segment_frames` (lengths in metres, colours in 0-255 RGB units)."""
 
-    grid_size: int = 25  # M, cells per side of the square grid
+    cell_size_m: float = 0.003  # planning-grid cell (m): the jaw noise sigma_g, a few depth pixels (grid_cells)
+    min_grid_cells: int = 25  # M at least this (the paper's M): a small object gets finer cells
+    max_grid_cells: int = 100  # M at most this: a large object gets coarser cells
+    grid_size: int = 25  # > 0: force M (cells per side of the square grid), cell_size_m then ignored; 0 = the rule
     margin: float = 0.2  # free margin on each side, fraction of the object's larger footprint side
     sensor: SensorModel = field(default_factory=lambda: CARMINE)  # depth-noise model (noise_model)
     table_plane: tuple[float, float, float, float] | None = None  # (a, b, c, d) camera frame; None = fit
@@ -107,8 +110,13 @@ class SensingParams:
     propagation_radius_m: float = 0.03  # propagated SDF variance reaches this far from its cause (m)
 
     def __post_init__(self) -> None:
-        if self.grid_size < 3:
-            raise ValueError(f'grid_size must be >= 3, got {self.grid_size}')
+        if self.grid_size != 0 and self.grid_size < 3:
+            raise ValueError(f'grid_size must be 0 (from cell_size_m) or >= 3, got {self.grid_size}')
+        if not (math.isfinite(self.cell_size_m) and self.cell_size_m > 0):
+            raise ValueError(f'cell_size_m must be a positive number of metres, got {self.cell_size_m}')
+        if not 3 <= self.min_grid_cells <= self.max_grid_cells:
+            raise ValueError(f'need 3 <= min_grid_cells <= max_grid_cells, got {self.min_grid_cells} and '
+                             f'{self.max_grid_cells}')
         if self.margin < 0:
             raise ValueError('margin must be >= 0')
         if self.border_px < 0:

@@ -144,13 +144,23 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     return hidden.reshape(m_y, sub, m_x, sub).mean(axis=(1, 3))
 
 
+def grid_cells(side: float, params: SensingParams) -> int:
+    """M for a grid of side ``side`` (m): ``grid_size`` when forced, else cells of ``cell_size_m`` clamped to
+    [``min_grid_cells``, ``max_grid_cells``] (the cells then shrink or grow). The cell size is physical - the
+    gripper's jaw noise, several depth pixels - so the planning problem does not depend on the object's size."""
+    if params.grid_size > 0:
+        return int(params.grid_size)
+    m = int(math.ceil(side / params.cell_size_m - 1e-9))
+    return int(min(max(m, params.min_grid_cells), params.max_grid_cells))
+
+
 def grid_around(target_xy: np.ndarray, table: TableFrame, params: SensingParams, frame_id: str) -> GridGeometry:
     """The square M x M grid in the table plane: the target's footprint bounding box plus ``margin`` of its
-    larger side on every side."""
+    larger side on every side, M from :func:`grid_cells`."""
     lo, hi = target_xy.min(axis=0), target_xy.max(axis=0)
     side = float(max(hi - lo)) * (1.0 + 2.0 * params.margin)
     side = max(side, 1e-3)
-    m = params.grid_size
+    m = grid_cells(side, params)
     centre = 0.5 * (lo + hi)
     return table.grid(centre[0] - side / 2, centre[1] - side / 2, side / m, m, m, frame_id)
 
@@ -184,7 +194,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     foot_xy, target_px, occ, p_c = feet.foot_xy, target.target_px, target.occ, target.p_c
     h, w = valid.shape
     geometry = grid_around(target.target_xy, fit.table, params, frame_id)
-    m = params.grid_size
+    m = geometry.width
     res = geometry.resolution
     col = np.floor((foot_xy[..., 0] - geometry.origin_x) / res)
     row = np.floor((foot_xy[..., 1] - geometry.origin_y) / res)

@@ -43,10 +43,9 @@ MAX_TRIALS = 100000
 MIN_JAW_SEPARATION = 1e-4
 
 
-#: The simulated gripper: the planner's, with fixed lengths for its positioning noise and pad compliance.
+#: The simulated gripper: the planner's (the same defaults, so P_F predicts what this node executes).
 PARAMETERS = ParamTable('gripper_sim_node', gripper_params(
-    ('jaw_width', 'max_opening', 'friction_coefficient', 'position_noise', 'contact_patch'),
-    position_noise=0.003, contact_patch=0.003), checks=[check_gripper])
+    ('jaw_width', 'max_opening', 'friction_coefficient', 'position_noise', 'contact_patch')), checks=[check_gripper])
 
 
 def build_gripper(v: dict[str, Any]) -> GripperParams:

@@ -92,7 +92,7 @@ TRIM_PERIOD = 2.0
 #: Answers to seeded service calls kept for callers that ask again (cleared when a new model arrives).
 ANSWERS_KEPT = 256
 #: Range of the uncertainty_penalty parameter; requests outside it (other than negative = default) are rejected.
-LAMBDA_RANGE = (0.0, 1000.0)
+LAMBDA_RANGE = (0.0, 1.0e8)
 
 
 @dataclass(frozen=True)
@@ -129,8 +129,9 @@ PARAMETERS = ParamTable('planner_node', [
           'n_grasp_samples', low=1, high=MAX_GRASP_SAMPLES),
     Param('num_shape_samples', int, 'S: GPIS shape samples of the Monte-Carlo P_F estimate (paper: 1000)', _PP,
           'n_shape_samples', low=10, high=100000),
-    Param('uncertainty_penalty', float, 'lambda of eq. 4, on variance measured in grid cells^2 (paper: 2.0); '
-          'requests outside this range are rejected', _PP, unit='1/cell^2', low=LAMBDA_RANGE[0],
+    Param('uncertainty_penalty', float, 'lambda of eq. 4, per m^2 of SDF variance at the contacts (the same on any '
+          'grid; the paper\'s 2 per cell^2 is 5e4 at 6.3 mm cells); requests outside this range are rejected', _PP,
+          unit='1/m^2', low=LAMBDA_RANGE[0],
           high=LAMBDA_RANGE[1]),
     Param('antipodal_alpha', float, 'alpha of eq. 5: bound on |n1 + n2|^2 of the antipodal constraint', _PP,
           low=0.0, high=4.0),

@@ -107,7 +107,15 @@ PARAMETERS = ParamTable('segmentation_node', [
           'belong to different bursts', BurstConfig, unit='s', low=0.01, high=3600.0),
     Param('max_image_pixels', int, 'largest camera frame accepted; larger messages are rejected before anything '
           'is allocated', validation.Limits, unit='pixels', low=1, high=50_000_000),
-    Param('grid_size', int, 'M: cells per side of the M x M grid (paper: 25)', _SP, unit='cells', low=4, high=100),
+    Param('grid_cell_size', float, 'planning-grid cell: M = the target footprint plus margins over this, within '
+          '[min_grid_size, max_grid_size] (docs/planning.md, "Resolution and lambda")', _SP, 'cell_size_m', unit='m',
+          low=0.0005, high=0.05),
+    Param('min_grid_size', int, 'smallest M from grid_cell_size (a small object gets finer cells)', _SP,
+          'min_grid_cells', unit='cells', low=4, high=100),
+    Param('max_grid_size', int, 'largest M from grid_cell_size (a large object gets coarser cells)', _SP,
+          'max_grid_cells', unit='cells', low=4, high=100),
+    Param('grid_size', int, 'M: force M x M cells (the paper: 25); 0 = from grid_cell_size', _SP, unit='cells',
+          low=0, high=100),
     Param('grid_margin', float, 'margin around the object bounding box, as a fraction of its size', _SP, 'margin',
           low=0.0, high=5.0),
     Param('height_threshold', float, 'depth mask: minimum height above the table', _SP, unit='m', low=0.0, high=0.5),

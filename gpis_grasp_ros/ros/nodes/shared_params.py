@@ -1,11 +1,8 @@
 """Parameters shared by several nodes: the gripper (planner_node, gripper_sim_node, segmentation_node)
 and the input-grid limits (gpis_node, planner_node).
 
-The gripper is defined once, in metres. Two of its lengths have a rule for "as the paper":
-``position_noise`` σ_g and ``contact_patch`` negative = half a cell of the grid the jaws close on
-(``GripperParams.position_noise_cells`` / ``contact_patch_cells`` × the grid's resolution; for the
-planner that is the planning grid, σ_g² = 0.25 cells² as in the paper). The planner's defaults are
-that rule; the simulated gripper's are fixed lengths (3 mm).
+The gripper is defined once, in metres (``GripperParams``; docs/planning.md, "Resolution and λ"): the
+planner's P_F and the simulated gripper close the same jaws with the same noise and pad on any grid.
 """
 
 from __future__ import annotations
@@ -15,10 +12,9 @@ from typing import Any
 from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.ros import validation
 from gpis_grasp_ros.ros.conversions import DEFAULT_JAW_HEIGHT
-from gpis_grasp_ros.ros.params import NEGATIVE_IS_NONE, Param
+from gpis_grasp_ros.ros.params import Param
 
 _G = GripperParams
-HALF_A_CELL = 'negative = half a cell of the grid the jaws close on (the paper\'s sigma_g^2 = 0.25 cells^2)'
 
 #: The gripper, by parameter name. Nodes take the entries they use (``GRIPPER['max_opening']``).
 GRIPPER: dict[str, Param] = {p.name: p for p in (
@@ -26,11 +22,10 @@ GRIPPER: dict[str, Param] = {p.name: p for p in (
     Param('max_opening', float, 'w_g: maximum jaw opening', _G, unit='m', low=0.005, high=0.5),
     Param('friction_coefficient', float, 'gamma: Coulomb friction coefficient', _G, 'friction_coef',
           low=0.0, high=5.0),
-    Param('position_noise', float, 'sigma_g: std of the jaw positioning error per axis; ' + HALF_A_CELL,
-          _G, unit='m', low=-1.0, high=0.1, rule=NEGATIVE_IS_NONE),
+    Param('position_noise', float, 'sigma_g: std of the jaw positioning error per axis and jaw on the table '
+          '(arm accuracy and camera-to-arm calibration)', _G, unit='m', low=0.0, high=0.1),
     Param('contact_patch', float, 'pad compliance: surface points within this distance of the first touch share '
-          'the contact; negative = half a cell of the grid the jaws close on', _G, unit='m', low=-1.0, high=0.05,
-          rule=NEGATIVE_IS_NONE),
+          'the contact', _G, unit='m', low=0.0, high=0.05),
     Param('jaw_height', float, 'height of a jaw pad along the approach direction (grasp_height clamp, markers)',
           default=DEFAULT_JAW_HEIGHT, unit='m', low=0.001, high=0.2),
 )}

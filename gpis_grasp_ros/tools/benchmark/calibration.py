@@ -315,7 +315,7 @@ def calibrate_object(posterior: GpisPosterior, truth: Any, planned: Sequence[dic
     eps_smooth = rng_smooth.standard_normal((params.n_perturbations, 2, 2))
     objective = MeanGraspObjective(ctx, eps_smooth, 0.0, False)
     g = ctx.geometry
-    x = np.concatenate([g.to_cell(jaw1), g.to_cell(jaw2)], axis=1)
+    x = MeanGraspObjective.variables(jaw1, jaw2)
     p_smooth = np.asarray(objective.details(x)['pf_smoothed'], dtype=np.float64) if x.shape[0] else np.zeros(0)
     z_info = gp_z_scores(posterior, truth)
     inflation = float(np.clip(z_info['gp_z_rms_near_surface'], 1.0, 20.0)) if math.isfinite(
@@ -328,7 +328,7 @@ def calibrate_object(posterior: GpisPosterior, truth: Any, planned: Sequence[dic
     p_true = perturbation_pf(ctx, true_shape_bank(truth, g), jaw1, jaw2, eps_true)
     q_mean = ctx.mean_quality(jaw1, jaw2)
 
-    exec_gripper: GripperParams = params.gripper.resolved(g)
+    exec_gripper: GripperParams = params.gripper
     exec_seeds = rng_exec.integers(0, 2 ** 63 - 1, size=jaw1.shape[0])
     rows = []
     for i in range(jaw1.shape[0]):

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from gpis_grasp_ros.core.sensing.params import SensingParams
 from gpis_grasp_ros.tools.benchmark.evaluation import (
     METHOD_BY_KEY,
     BenchmarkResult,
@@ -128,7 +129,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--shape-samples', type=int, default=1000,
                    help='S shape samples of every Monte-Carlo P_F (default: 1000)')
     p.add_argument('--trials', type=int, default=20, help='simulated executions per grasp and seed (default: 20)')
-    p.add_argument('--grid-size', type=int, default=25, help='M of the M x M GPIS grid, Table I run (default: 25)')
+    p.add_argument('--grid-size', type=int, default=SensingParams.grid_size,
+                   help=f'force M of the M x M GPIS grid, Table I run (default: {SensingParams.grid_size}; 0 = from '
+                        'the object and the cell size)')
     p.add_argument('--blur-samples', type=int, default=1000,
                    help='joint samples of the GPIS-Blur figures (default: 1000)')
     p.add_argument('--methods', default=None,
@@ -151,9 +154,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--repeats', type=int, default=3,
                    help='scaling: runs per timing, the shortest is kept (default: 3)')
     args = p.parse_args(argv)
-    for name in ('seeds', 'grasp_samples', 'shape_samples', 'workers', 'grid_size', 'blur_samples', 'repeats'):
+    for name in ('seeds', 'grasp_samples', 'shape_samples', 'workers', 'blur_samples', 'repeats'):
         if getattr(args, name) < 1:
             p.error(f'--{name.replace("_", "-")} must be >= 1')
+    if args.grid_size < 0 or 0 < args.grid_size < 3:
+        p.error('--grid-size must be 0 (from the cell size) or >= 3')
     if args.trials < 0:
         p.error('--trials must be >= 0')
     if args.calibration_candidates < 0 or args.calibration_trials < 1:

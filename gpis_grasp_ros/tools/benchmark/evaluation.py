@@ -18,6 +18,7 @@ from gpis_grasp_ros.core.blur import gpis_blur
 from gpis_grasp_ros.core.gpis import GpisPosterior, center_of_mass
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.planners import PlannerParams, plan
+from gpis_grasp_ros.core.planners.params import UNCERTAINTY_PENALTY
 from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.tools.benchmark.calibration import calibrate_object
@@ -109,8 +110,8 @@ class BenchmarkSettings:
     shape_samples: int = 1000  # S shape samples for every Monte-Carlo P_F
     trials: int = 20  # simulated executions per grasp and seed
     n_initial_grasps: int = 20  # N_g
-    uncertainty_penalty: float = 2.0  # λ per cell² of SDF variance
-    grid_size: int = 25  # M of the GPIS grid
+    uncertainty_penalty: float = UNCERTAINTY_PENALTY  # λ per m² of SDF variance
+    grid_size: int = SensingParams.grid_size  # M of the GPIS grid; 0 = from the object and the cell size
     blur_samples: int = 1000  # joint samples for the GPIS-Blur figures
     com_samples: int = 1000  # joint samples for the centre-of-mass spread
     methods: tuple[str, ...] = tuple(m.key for m in METHODS)  # keys of METHODS to run, in this order
@@ -275,7 +276,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
              if scene.true_sdf is not None and scene.true_geometry is not None else None)
     com_rms, com_p95 = com_statistics(posterior, s.com_samples, np.random.default_rng(derive_seed('com', name)))
     info: dict[str, Any] = {
-        'object': name, 'letter': letter, 'bag': str(bag), 'grid_size': s.grid_size, 'resolution_m': res,
+        'object': name, 'letter': letter, 'bag': str(bag), 'grid_size': geometry.width, 'resolution_m': res,
         'rank': int(posterior.rank), 'signal_std_m': math.sqrt(posterior.params.signal_variance),
         'length_scale_m': posterior.params.length_scale,
         'max_std_cells': float(np.sqrt(np.max(posterior.variance)) / res),
@@ -286,9 +287,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
     rows: list[dict[str, Any]] = []
     grasps: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     convergence: list[dict[str, Any]] = []
-    base_gripper = s.planner_params(METHODS[0]).gripper
-    # σ_g and the contact-patch tolerance = 0.5 planning cell, fixed in metres for the true grid
-    exec_gripper = base_gripper.resolved(geometry)
+    exec_gripper = s.planner_params(METHODS[0]).gripper  # the planners' gripper (metric) executes every grasp
     for spec in s.method_specs:
         params = s.planner_params(spec)
         for seed in range(s.seeds):
@@ -338,7 +337,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
     info['object_wall_time_s'] = time.perf_counter() - t_object
     return ObjectResult(object=name, letter=letter, bag=str(bag), rows=rows, info=info, geometry=geometry,
                         blur=blur, outline=truth.outline() if truth is not None else [],
-                        jaw_width=base_gripper.jaw_width, grasps=grasps, convergence=convergence,
+                        jaw_width=exec_gripper.jaw_width, grasps=grasps, convergence=convergence,
                         calibration=calibration_rows)
 
 

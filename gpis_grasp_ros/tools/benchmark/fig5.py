@@ -179,7 +179,7 @@ def run_fig5(out_dir: str | Path, settings: BenchmarkSettings, workers: int = 1,
     for (key, title, paper, expected), o, bag in zip(PATTERNS, result.objects, bags, strict=True):
         scene = load_bag(bag)
         truth = TrueShape(scene.true_sdf, scene.true_geometry, o.geometry)
-        gripper = s.planner_params(METHOD_BY_KEY['gp-g']).gripper.resolved(o.geometry)
+        gripper = s.planner_params(METHOD_BY_KEY['gp-g']).gripper
         seeds = []
         for r in (r for r in o.rows if r['method'] == 'gp-g'):
             d = describe_grasp(truth, np.array([r['jaw1_x'], r['jaw1_y']]), np.array([r['jaw2_x'], r['jaw2_y']]),

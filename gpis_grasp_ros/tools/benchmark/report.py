@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from gpis_grasp_ros.core.planners import PlannerParams
+from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.tools.benchmark.calibration import DIAGNOSTICS, PREDICTORS, summarise
 from gpis_grasp_ros.tools.benchmark.evaluation import METHOD_BY_KEY, PAPER_COLUMNS, PAPER_TABLE1, BenchmarkResult
 from gpis_grasp_ros.tools.evaluation.reports import write_csv
@@ -140,6 +142,15 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], align: str | No
     return lines
 
 
+def grid_text(settings: Any) -> str:
+    """The planning grid of a run in words: the forced M x M, or the cell-size rule."""
+    if settings.grid_size > 0:
+        return f'{settings.grid_size} x {settings.grid_size} cells'
+    d = SensingParams()
+    return (f'{1000 * d.cell_size_m:g} mm cells (M = {d.min_grid_cells} to {d.max_grid_cells} cells per side, from '
+            'the object)')
+
+
 def table1_markdown(result: BenchmarkResult) -> str:
     """The contents of ``table1.md`` (see the module docstring)."""
     s = result.settings
@@ -147,9 +158,10 @@ def table1_markdown(result: BenchmarkResult) -> str:
     objs = result.objects
     lines = [
         '# Table I — probability of force closure and runtime (ours vs. the paper)', '',
-        f'{len(objs)} objects (simulated Carmine bags), GPIS on {s.grid_size} x {s.grid_size} cells built as the '
-        f'nodes build it; N_g = {s.n_initial_grasps}, λ = {s.uncertainty_penalty:g}, K = {s.grasp_samples} grasp '
-        f'samples, S = {s.shape_samples} shape samples, σ_g = 0.5 cell, {s.seeds} seed(s). GP-P is brute force '
+        f'{len(objs)} objects (simulated Carmine bags), GPIS on {grid_text(s)} built as the '
+        f'nodes build it; N_g = {s.n_initial_grasps}, λ = {s.uncertainty_penalty:g} per m², K = {s.grasp_samples} '
+        f'grasp samples, S = {s.shape_samples} shape samples, σ_g = {1000 * PlannerParams().gripper.sigma_g:g} mm, '
+        f'{s.seeds} seed(s). GP-P is brute force '
         '(every candidate scored on all S samples), as in the paper.', '',
         f'P_F: mean over seeds of the Monte-Carlo estimate on S = {s.shape_samples} evaluation shape samples '
         f'(std error of one estimate ≤ {0.5 / math.sqrt(max(s.shape_samples, 1)):.3f}); the paper\'s value in '

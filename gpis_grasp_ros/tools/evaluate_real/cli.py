@@ -22,6 +22,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from gpis_grasp_ros.core.sensing.params import SensingParams
 from gpis_grasp_ros.tools.evaluate_real import report
 from gpis_grasp_ros.tools.evaluate_real.manifest import load_manifest
 from gpis_grasp_ros.tools.evaluate_real.tasks import import_unit, make_tasks, run_real_task
@@ -42,7 +43,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help='also plan GP-GPIS-OPT on the truth sampled at the planning grid (default: off)')
     p.add_argument('--trials', type=int, default=20,
                    help='simulated executions of each grasp on the ground truth (default 20)')
-    p.add_argument('--grid-size', type=int, default=25, help='M of the M x M planning grid, cells (default 25)')
+    p.add_argument('--grid-size', type=int, default=SensingParams.grid_size,
+                   help=f'force M of the M x M planning grid, cells (default {SensingParams.grid_size}, as '
+                        'segmentation_node; 0 = from the target and the cell size)')
     p.add_argument('--out', help='write results.jsonl, results.json, table.md and reliability.png here (a rerun '
                    'with the same settings resumes; default: print only)')
     p.add_argument('--fresh', action='store_true', help='with --out: discard earlier results there')
@@ -86,9 +89,11 @@ def main(argv: list[str] | None = None) -> int:
         if not methods:
             raise ValueError('--methods needs at least one planner')
         for name, value, low in (('--seeds', args.seeds, 1), ('--trials', args.trials, 1),
-                                 ('--workers', args.workers, 1), ('--grid-size', args.grid_size, 3)):
+                                 ('--workers', args.workers, 1)):
             if value < low:
                 raise ValueError(f'{name} must be >= {low}, got {value}')
+        if args.grid_size < 0 or 0 < args.grid_size < 3:
+            raise ValueError(f'--grid-size must be 0 (from the cell size) or >= 3, got {args.grid_size}')
         units = load_manifest(args.manifest, args.root)
     except (ValueError, FileNotFoundError) as exc:
         print(f'evaluate-real: error: {exc}', file=sys.stderr)

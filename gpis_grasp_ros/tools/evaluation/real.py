@@ -79,7 +79,8 @@ def _other_objects_xy(result: SensingResult) -> np.ndarray:
     return result.geometry.from_sensor(feet)[0]
 
 
-def sensing_params(target_px: tuple[float, float], sensor: str = 'realsense_d400', grid_size: int = 25,
+def sensing_params(target_px: tuple[float, float], sensor: str = 'realsense_d400',
+                   grid_size: int = SensingParams.grid_size,
                    clear_body_height_m: float = 0.0) -> SensingParams:
     """segmentation_node's parameters for ``target:=pixel`` at ``target_px`` (pixels of the scene's image)."""
     return SensingParams(sensor=SensorModel.named(sensor), target='pixel', target_point=tuple(target_px),
@@ -105,7 +106,7 @@ def prepare_real(scene: Any, params: SensingParams, name: str = '') -> RealFit:
     if len(others):
         others = others[~(true_shape.values_at(others) < 0.01)]
     return RealFit(name, fit, true_shape, truth, iou(result.occupancy >= 0.5), iou(mean_shape), others,
-                   GripperParams().resolved(g))
+                   PlannerParams().gripper)  # the planner's (metric) gripper executes
 
 
 def evaluate_grasp(rf: RealFit, method: str, seed: int, trials: int = 20, oracle: bool = False,
@@ -127,7 +128,7 @@ def evaluate_grasp(rf: RealFit, method: str, seed: int, trials: int = 20, oracle
 
 
 def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',
-                 trials: int = 20, seed: int = 0, oracle: bool = False, grid_size: int = 25,
+                 trials: int = 20, seed: int = 0, oracle: bool = False, grid_size: int = SensingParams.grid_size,
                  method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0,
                  uncertainty_penalty: float | None = None) -> RealEvaluation:
     """Segment an imported capture as segmentation_node does (one frame, ``target:=pixel``), fit the
@@ -137,15 +138,17 @@ def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str =
     ``oracle``: plan on the ground truth itself instead of the perceived shape - its occupancy sampled at
     the planning grid's cell centres (0 or 100), every cell trained with ``ORACLE_NOISE_M2`` - the best any
     perception can give the planner at the grid's resolution. The IoUs are still the perceived ones.
-    ``grid_size``: M of the M x M planning grid (segmentation_node's ``grid_size``); ``clear_body_height_m``: a
-    clear target body's known height (m; segmentation_node's ``clear_body_height``, 0 = the priors);
-    ``uncertainty_penalty``: λ of eq. 4/6 per cell² (planner_node's ``uncertainty_penalty``; None = its default)."""
+    ``grid_size``: forced M of the M x M planning grid (segmentation_node's ``grid_size``; 0 = from the target's
+    extent and the cell size); ``clear_body_height_m``: a clear target body's known height (m; segmentation_node's
+    ``clear_body_height``, 0 = the priors); ``uncertainty_penalty``: λ of eq. 4/6 per m² of SDF variance
+    (planner_node's ``uncertainty_penalty``; None = its default)."""
     return evaluate_seeds(path, target_px, [seed], sensor, trials, oracle, grid_size, method, clear_body_height_m,
                           uncertainty_penalty)[0]
 
 
 def evaluate_seeds(path: str | Path, target_px: tuple[float, float], seeds: Sequence[int],
-                   sensor: str = 'realsense_d400', trials: int = 20, oracle: bool = False, grid_size: int = 25,
+                   sensor: str = 'realsense_d400', trials: int = 20, oracle: bool = False,
+                   grid_size: int = SensingParams.grid_size,
                    method: str = 'gp-gpis-opt', clear_body_height_m: float = 0.0,
                    uncertainty_penalty: float | None = None) -> list[RealEvaluation]:
     """:func:`evaluate_bag` for each planner and execution seed of ``seeds``: the capture is segmented and the

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from gpis_grasp_ros.core.sensing.params import SensingParams
 from gpis_grasp_ros.tools.evaluation.truth import TrueShape
 from gpis_grasp_ros.tools.seeds import derive_seed
 
@@ -140,7 +141,7 @@ PLAN_TIME_COLUMNS = ('planning_time_s', 'evaluation_time_s')
 class EvalSettings:
     """Settings shared by all tasks of a run (counts as in the paper unless reduced for speed)."""
 
-    grid_size: int = 25  # M of the GPIS grid
+    grid_size: int = SensingParams.grid_size  # M of the GPIS grid; 0 = from the object and the cell size
     frames: int = 10  # camera frames per scene
     grasp_samples: int = 1000  # K heuristic candidates of GP-M / GP-P
     shape_samples: int = 1000  # S shape samples of every Monte-Carlo P_F
@@ -148,7 +149,9 @@ class EvalSettings:
     trials: int = 50  # simulated executions per grasp on the true shape
 
     def __post_init__(self) -> None:
-        for name in ('grid_size', 'frames', 'grasp_samples', 'shape_samples', 'n_initial_grasps'):
+        if int(self.grid_size) < 0:
+            raise ValueError(f'grid_size must be >= 0 (0 = from the cell size), got {self.grid_size}')
+        for name in ('frames', 'grasp_samples', 'shape_samples', 'n_initial_grasps'):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f'{name} must be a positive integer, got {getattr(self, name)}')
         if int(self.trials) < 0:
@@ -159,7 +162,7 @@ class EvalSettings:
 class Task:
     """One independent unit: an object (its manifest entry) × method × (λ, α) × seed.
 
-    ``uncertainty_penalty`` (λ, per cell²) and ``antipodal_alpha`` (α of eq. 5) of ``None`` keep
+    ``uncertainty_penalty`` (λ, per m²) and ``antipodal_alpha`` (α of eq. 5) of ``None`` keep
     :class:`~gpis_grasp_ros.core.planners.PlannerParams`' defaults. ``fail_first_attempts`` is a
     fault drill: the task raises on its first k attempts (0 in real runs; used to test retries).
     """
@@ -297,7 +300,7 @@ def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
             trials = int(task.settings.trials)
             succ = 0
             if r.success:
-                gripper = params.gripper.resolved(model.posterior.geometry)
+                gripper = params.gripper
                 rng = np.random.default_rng(derive_seed('gripper', int(task.seed), e['id']))
                 succ = model.truth.execute(r.jaw1, r.jaw2, gripper, trials, rng, center_of_mass=model.true_com,
                                            snap_aligned=True)
