@@ -1,4 +1,4 @@
-"""GP-GPIS-OPT and adaptive GP-P P_F at forced M = 25, 50, 100 on the shipped top-down bags (the slow test)."""
+"""GP-GPIS-OPT and adaptive GP-P P_F at forced M = 25, 50, 100 on shipped top-down bags (a study: docs/planning.md).
 import sys
 from pathlib import Path
 
