@@ -141,16 +141,18 @@ def test_a_known_height_replaces_the_priors():
 @pytest.mark.parametrize('view', ['', 'head'])
 def test_a_clear_body_is_trained_with_the_disagreement_variance(view):
     """The clear squirt bottle G (no depth on its body), top-down and from the head camera: its prism cells and
-    the table seen through it carry the disagreement variance (1e-4 m^2), not the propagated variance of "this
+    the table seen through it carry the disagreement variance (1e-4 m^2) and that of the prism's unknown height
+    (noise_map.prism_variance: median 1.6e-4 / 3.4e-4 m^2 in all), not the propagated variance of "this
     component might be free" - for the body, the object itself, that alternative would leave no bottle at all
     (it gave them a median of 5e-3 m^2, sigma ~7 cm, and the mean shape followed the table around them: IoU at
-    1 mm 0.84 top-down, 0.75 head; now 0.89 and 0.83)."""
+    1 mm 0.84 top-down, 0.75 head; now 0.90 and 0.84)."""
     scene = load_bag(next((BAGS / view).glob('G_*.mcap')))
     params = SensingParams()
     result = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, params, scene.frame_id)
     clear = result.train_mask & (result.disagreement >= 1.0)  # the body and the table seen through it
     assert clear.sum() > 80
-    assert np.median(result.noise_variance[clear]) < 1.5 * params.disagreement_variance_m2
+    v = params.disagreement_variance_m2
+    assert v < np.median(result.noise_variance[clear]) < 5 * v
     occ, noise, geometry = publishable_grids(result)
     mean = posterior_from_grids(occ, noise, geometry).mean
     assert TrueShape(scene.true_sdf, scene.true_geometry, geometry).iou_fine(geometry, mean) > 0.8

@@ -9,6 +9,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.evidence import Evidence, chromaticity_distance
 from gpis_grasp_ros.core.sensing.morphology import _filled
@@ -18,6 +19,7 @@ from gpis_grasp_ros.core.sensing.params import (
     CHROMA_CLEAR_FRACTION,
     CHROMA_CORE_PX,
     CLEAR_BODY_FRACTION,
+    CLEAR_BODY_HEIGHT_FACTOR,
     PRISM_RASTER_M,
     PRISM_STEP_M,
     SensingParams,
@@ -225,6 +227,17 @@ def _clear_body_cells(under: np.ndarray, depth_seen: np.ndarray, observed: np.nd
     occupancy = np.where(behind, 0.0, np.where(body, np.maximum(occupancy, 1.0), occupancy))
     disagreement = np.where(behind | body, 1.0, disagreement)
     return occupancy, missing & ~behind, np.where(behind, 0.0, miss_c), disagreement, body, behind
+
+
+def prism_alternatives(geometry: GridGeometry, silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,
+                       height_m: float, depth_seen: np.ndarray, observed: np.ndarray, missing: np.ndarray,
+                       factor: float = CLEAR_BODY_HEIGHT_FACTOR) -> tuple[np.ndarray, np.ndarray]:
+    """A clear body's prism cells (as :func:`_clear_body_cells` makes them) under the heights ``height_m`` /
+    ``factor`` and ``height_m`` x ``factor``: the footprint its height prior allows (the noise map's
+    variance of the body, :func:`~gpis_grasp_ros.core.sensing.noise_map.prism_variance`)."""
+    centres = geometry.cell_centers()
+    return tuple(observed & ~depth_seen & ~missing & prism_footprint(centres, silhouette, table, intrinsics, h)
+                 for h in (height_m / factor, height_m * factor))
 
 
 class Target(NamedTuple):

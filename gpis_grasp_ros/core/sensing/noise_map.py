@@ -72,6 +72,33 @@ def _propagation_variance(occ_bin: np.ndarray, uncertain: np.ndarray, train: np.
     return out
 
 
+def prism_variance(sdf_object: np.ndarray, body: np.ndarray, alternatives: tuple[np.ndarray, ...],
+                   train: np.ndarray, geometry: GridGeometry, params: SensingParams) -> np.ndarray:
+    """SDF variance (m^2) of every cell from a clear body's unknown height: its prism is a prior, not a measurement.
+
+    The body's footprint under the heights H / k, H, H x k (``alternatives``: the prism cells under the outer
+    two, :func:`~gpis_grasp_ros.core.sensing.clear_body.prism_alternatives`), weighted 1/4, 1/2, 1/4 - a
+    discretised prior of the height. Each cell's SDF differs between them by delta (0 where its nearest surface
+    is not the body's), and its variance is E[delta^2] - E[delta]^2, times the effective number of cells that
+    share the error, as in :func:`_propagation_variance` (the footprint moves as a whole: the GP must not pool
+    its cells' errors away as independent). Counting every cell it changes instead (all of the grid when the
+    body is the only object) made the mean shape follow the prior: G's IoU at 1 mm 0.89 -> 0.76."""
+    out = np.zeros(geometry.shape)
+    if not alternatives or not body.any():
+        return out
+    res = geometry.resolution
+    base = signed_distance(sdf_object, res)
+    deltas = [signed_distance((sdf_object & ~body) | alt, res) - base for alt in alternatives if alt.any()]
+    if not deltas:
+        return out
+    weight = 0.25  # each outer height; the nominal one (delta = 0) 1/2
+    mean = weight * sum(deltas)
+    var = weight * sum(d ** 2 for d in deltas) - mean ** 2
+    affected = int(np.count_nonzero((var > 1e-12) & train))
+    n_eff = max(1.0, min(float(affected), math.pi * (params.error_correlation_length_m / res) ** 2))
+    return n_eff * np.maximum(var, 0.0)
+
+
 class NoiseMap(NamedTuple):
     """What the GPIS is trained on."""
 
@@ -82,9 +109,11 @@ class NoiseMap(NamedTuple):
 
 def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_hull: np.ndarray,
               params: SensingParams) -> NoiseMap:
-    """SDF noise = depth + disagreement + propagation. Unknown cells are not trained and count
-    as object in the SDF, so the prior governs them (section III-B); a clear body's prism cells and the table
-    seen through it stay trained with the disagreement variance."""
+    """SDF noise = depth + disagreement + propagation + a clear body's height (:func:`prism_variance`).
+
+    Unknown cells are not trained and count as object in the SDF, so the prior governs them (section III-B); a
+    clear body's prism cells and the table seen through it stay trained, with the disagreement variance plus
+    the variance of the prism's unknown height."""
     geometry, missing, disagreement, body, behind = (cells.geometry, cells.missing, cells.disagreement, cells.body,
                                                      cells.behind)
     disagree = disagreement > params.uncertainty_threshold
@@ -106,5 +135,6 @@ def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_h
     train_mask = ~unknown
     sdf_object = occ_bin | ~train_mask  # what the GPIS's SDF treats as object (pipeline.publishable_grids)
     noise = noise + _propagation_variance(sdf_object, uncertain & ~(body | behind), train_mask, geometry, params)
+    noise = noise + prism_variance(sdf_object, body, cells.body_alternatives, train_mask, geometry, params)
     noise = np.where(train_mask, noise, np.maximum(noise, params.disagreement_variance_m2))  # unused by the GP
     return NoiseMap(noise, train_mask, uncertain)

@@ -36,6 +36,11 @@ HIDDEN_SUBCELLS = 8  # points per cell side at which the hidden part of a cell i
 CHROMA_CORE_PX = 7  # a region seen through a clear body holds a disc this wide (px); an edge band does not
 
 
+# What the sensor did not measure stays uncertain (noise_map.prism_variance)
+CLEAR_BODY_HEIGHT_FACTOR = math.sqrt(2.0)  # a clear body's prior height is right to within this factor: a round
+#                                             body lying seen through is cos a + sin a <= sqrt 2 times higher
+
+
 # The table that supports the target (table.target_support): its colour model is learnt within this radius
 SUPPORT_RADIUS_M = 0.15  # of the target point in the table plane (m)
 SUPPORT_MIN_PX = 500  # ... when at least this many plane inliers lie that close (else all of them)
@@ -191,6 +196,8 @@ class SensingResult:
     #                                             their rays enter it (:func:`see_through_pixels`)
     shadow_px: np.ndarray | None = None  # (H, W) bool, no-return pixels in the sensor's shadow, taken as
     #                                       unmeasured table (:func:`occlusion_shadow_pixels`)
+    clear_body: np.ndarray | None = None  # (M, M) bool, a clear body's prism cells (object from colour/holes only)
+    seen_behind: np.ndarray | None = None  # (M, M) bool, the table seen through a clear body
 
     @property
     def sdf(self) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
-from gpis_grasp_ros.core.sensing.clear_body import Target, _clear_body_cells, prism_footprint
+from gpis_grasp_ros.core.sensing.clear_body import Target, _clear_body_cells, prism_alternatives, prism_footprint
 from gpis_grasp_ros.core.sensing.occlusion import Feet
 from gpis_grasp_ros.core.sensing.params import HIDDEN_SUBCELLS, MISSING_HEIGHT_WINDOW_M, SensingParams
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
@@ -182,6 +182,7 @@ class Cells(NamedTuple):
     depth_var: np.ndarray  # m^2, mean averaged depth variance of the cell's valid pixels
     body: np.ndarray  # a clear body's prism cells
     behind: np.ndarray  # the table seen through a clear body
+    body_alternatives: tuple[np.ndarray, ...] = ()  # its prism cells under the other plausible heights
 
 
 def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fit: TableFit, meas: Measurement,
@@ -276,9 +277,13 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
         depth_var = np.where(s_valid > 0, s_var / s_valid, 0.0)
     disagreement = np.where(observed & (s_valid > 0), np.clip(np.nan_to_num(rho_c), 0.0, 1.0), 0.0)
     body = behind = np.zeros((m, m), dtype=bool)
+    alternatives: tuple[np.ndarray, ...] = ()
     if target.clear_target:
         occupancy, missing, miss_c, disagreement, body, behind = _clear_body_cells(
             prism_footprint(geometry.cell_centers(), target_px, fit.table, intrinsics, target.body_height),
             depth_seen_cell, observed, occupancy, missing, miss_c, disagreement)
+        if params.clear_body_height_m <= 0:  # the height from a prior: its footprint under the other heights
+            alternatives = prism_alternatives(geometry, target_px, fit.table, intrinsics, target.body_height,
+                                              depth_seen_cell, observed, missing)
     return Cells(geometry, row, col, in_grid, informative, observed, occluded, occupancy, missing, miss_c,
-                 disagreement, depth_var, body, behind)
+                 disagreement, depth_var, body, behind, alternatives)
