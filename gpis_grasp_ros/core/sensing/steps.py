@@ -5,7 +5,8 @@ no more than the sensor's noise can explain (``STEP_SIGMAS`` x the noise of the 
 surface of slope ``STEP_SLOPE_DEG`` over one cell. Cells joined by such edges form *patches*; a patch that holds
 a square jaw face (``min_width_m``, the side of the minimum object) and the minimum object area is a *core*. A
 component with two or more cores, joined only through steps or through slivers (walls, steep flanks, noise)
-narrower than a jaw face, is split: every cell goes to the core it is deepest in (:func:`_flood`)."""
+narrower than a jaw face, is split where the lower of two neighbouring cores is flat (:func:`split_height_steps`):
+every cell goes to the core it is deepest in."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.special import ndtri
 
 from gpis_grasp_ros.core.sensing.morphology import _flood, _nearest_label
-from gpis_grasp_ros.core.sensing.params import CHROMA_CLEAR_FRACTION, STEP_FALSE_ALARM, STEP_SLOPE_DEG
+from gpis_grasp_ros.core.sensing.params import CHROMA_CLEAR_FRACTION, FLAT_JUMP_M, STEP_FALSE_ALARM, STEP_SLOPE_DEG
 
 #: Sigmas of the noise of a height difference that one continuous surface exceeds with STEP_FALSE_ALARM (two-sided).
 STEP_SIGMAS = float(-ndtri(STEP_FALSE_ALARM / 2))
@@ -98,8 +99,8 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
     depth (at least half of its cells coherent, ``CHROMA_CLEAR_FRACTION`` of its pixels: a clear body's scattered
     returns and its table seen through are no surface to tell it by), and whose median height is a step above
     the table (:func:`step_limit`: a fringe of mixed pixels along an object's foot is not a part). The cells are
-    flooded from the cores (:func:`~.morphology._flood`); two parts whose common boundary is mostly cells
-    without a return stay one (:func:`_join_unmeasured`). The first part of a component keeps its label, the
+    flooded from the cores (:func:`~.morphology._flood`); two parts stay one unless their common boundary is mostly
+    a measured step and the lower one is flat (:func:`_join_parts`). The first part of a component keeps its label, the
     others get fresh labels; returns the labels and the origin of every label (parts of one component are not
     joined again through holes, see :func:`~.objects.split_touching`)."""
     n = int(labels.max()) + 1
@@ -128,13 +129,15 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
     evidence_px = np.bincount(filled.ravel(), weights=cells.evidence_px.ravel(), minlength=n_patch)
     height = np.zeros(n_patch)
     sigma = np.zeros(n_patch)
+    span = np.zeros(n_patch)
     coherent = patch > 0
     order = np.argsort(patch[coherent], kind='stable')
     ids_sorted, h_sorted = patch[coherent][order], cells.mean[coherent][order]
     s_sorted = cells.sigma[coherent][order]
     bounds = np.searchsorted(ids_sorted, np.arange(n_patch + 1))
     for i in np.nonzero(measured[1:] > 0)[0] + 1:
-        height[i] = np.median(h_sorted[bounds[i]:bounds[i + 1]])
+        lo, height[i], hi = np.percentile(h_sorted[bounds[i]:bounds[i + 1]], [5.0, 50.0, 95.0])
+        span[i] = hi - lo
         sigma[i] = np.median(s_sorted[bounds[i]:bounds[i + 1]])
     core = (depth >= max(0.5 * min_width_m / res - 0.5, 0.5)) & (measured * res ** 2 >= min_area_m2) \
         & (2 * measured >= n_cells) & (depth_px >= CHROMA_CLEAR_FRACTION * evidence_px) \
@@ -147,20 +150,26 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
         ids = np.nonzero(core & (patch_label == lab))[0]
         rank = np.zeros(n_patch, np.int32)
         rank[ids] = np.arange(1, ids.size + 1)
-        parts = _join_unmeasured(_flood(np.where(comp, rank[filled], 0).astype(np.int32), dist, comp), patch,
-                                 np.isfinite(cells.mean), cells.blind, ids.size)
+        parts = _join_parts(_flood(np.where(comp, rank[filled], 0).astype(np.int32), dist, comp), patch,
+                                 np.isfinite(cells.mean), cells.blind, height[ids], span[ids] <= FLAT_JUMP_M)
         for part in np.unique(parts[comp & (parts > 0)])[1:]:
             out[comp & (parts == part)] = len(origin)
             origin.append(int(origin[lab]))
     return out, np.asarray(origin)
 
 
-def _join_unmeasured(parts: np.ndarray, patch: np.ndarray, seen: np.ndarray, blind: np.ndarray,
-                     n_parts: int) -> np.ndarray:
-    """``parts`` (1..n_parts, 0 = none) with the neighbouring parts joined whose common boundary is not mostly a
-    measured step: of the 4-neighbour cell pairs across it, those with a depth-seen cell on both sides in different
-    patches (a step, or a cell whose pixels span one) must be at least those with an unseen cell on a side (the
-    parts of a clear body are separated by its no-return and seen-through cells, touching objects by a step)."""
+def _join_parts(parts: np.ndarray, patch: np.ndarray, seen: np.ndarray, blind: np.ndarray,
+                     height: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """``parts`` (1..n, 0 = none; core ``k`` of median ``height[k - 1]``, ``flat`` or not) with neighbouring parts
+    joined unless their common boundary is mostly a measured step and the lower of the two is flat.
+
+    Measured step: of the 4-neighbour cell pairs across the boundary, those with a depth-seen cell on both sides
+    in different patches (a step, or a cell whose pixels span one) are at least those with a cell without a
+    return on a side (a clear body's parts are separated by its no-return cells, touching objects by a step).
+    Flat lower part (5th to 95th percentile of its heights within ``FLAT_JUMP_M``, as a flat support in
+    :func:`~.objects.split_flat_support`): a box's top beside a taller box is another object, while a lying
+    cylinder's crest beside its taller end cap (a flashlight's head) is not flat and stays with it."""
+    n_parts = height.size
     step = np.zeros((n_parts + 1, n_parts + 1))
     unseen = np.zeros((n_parts + 1, n_parts + 1))
     for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
@@ -181,6 +190,7 @@ def _join_unmeasured(parts: np.ndarray, patch: np.ndarray, seen: np.ndarray, bli
         return i
 
     for i, j in zip(*np.nonzero(np.triu((step + unseen) > 0, 1)), strict=True):
-        if step[i, j] < max(unseen[i, j], 1.0):
+        lower = i if height[i - 1] <= height[j - 1] else j
+        if step[i, j] < max(unseen[i, j], 1.0) or not flat[lower - 1]:
             root[find(int(j))] = find(int(i))
     return np.array([find(i) for i in range(n_parts + 1)])[parts]
