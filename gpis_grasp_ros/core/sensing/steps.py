@@ -2,11 +2,13 @@
 
 Two neighbouring raster cells lie on one continuous surface when their mean heights above the table differ by
 no more than the sensor's noise can explain (``STEP_SIGMAS`` x the noise of the difference) plus the rise of a
-surface of slope ``STEP_SLOPE_DEG`` over one cell. Cells joined by such edges form *patches*; a patch that holds
-a square jaw face (``min_width_m``, the side of the minimum object) and the minimum object area is a *core*. A
-component with two or more cores, joined only through steps or through slivers (walls, steep flanks, noise)
-narrower than a jaw face, is split where the lower of two neighbouring cores is flat (:func:`split_height_steps`):
-every cell goes to the core it is deepest in."""
+surface of slope ``STEP_SLOPE_DEG`` over one cell; a cell no higher than that above the table is continuous with
+the table itself. Cells above that, joined by such edges, form *patches*; a patch that holds a square jaw face
+(``min_width_m``, the side of the minimum object) and the minimum object area is a *core*. A component with two
+or more cores is split where two of them meet only through a step with the lower one flat (a box beside a taller
+box), or only down at the table (a valley: two objects lying side by side), and not through slivers (walls,
+steep flanks, noise) narrower than a jaw face: every cell goes to the core it is deepest in
+(:func:`split_height_steps`)."""
 
 from __future__ import annotations
 
@@ -74,8 +76,9 @@ def surface_patches(labels: np.ndarray, cells: CellHeights, res: float) -> np.nd
     blend of surface and table seen through is not), joined through 4-neighbours of the same label whose heights
     differ by at most :func:`step_limit`."""
     s = np.nan_to_num(cells.sigma)
-    seen = np.isfinite(cells.mean) & (labels > 0) & (np.nan_to_num(cells.spread, nan=np.inf) <= step_limit(s, s, res))
     h = np.nan_to_num(cells.mean)
+    seen = np.isfinite(cells.mean) & (labels > 0) & (np.nan_to_num(cells.spread, nan=np.inf) <= step_limit(s, s, res)) \
+        & (h > step_limit(s, s, res))
     ny, nx = labels.shape
     idx = np.arange(ny * nx).reshape(ny, nx)
     rows, cols = [], []
@@ -91,18 +94,18 @@ def surface_patches(labels: np.ndarray, cells: CellHeights, res: float) -> np.nd
 
 def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_width_m: float, min_area_m2: float,
                        origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Split the components of ``labels`` whose cores are joined only through height steps (module docstring).
+    """Split the components of ``labels`` whose cores meet only through a valley or a step (module docstring).
 
-    A core is measured surface standing on the table: a patch (:func:`surface_patches`; its cells without a
-    coherent height - unseen, or spanning a step - added from the nearest coherent cell of the same component)
-    that holds a disc of diameter ``min_width_m``, has ``min_area_m2`` of coherent cells and is mostly seen in
-    depth (at least half of its cells coherent, ``CHROMA_CLEAR_FRACTION`` of its pixels: a clear body's scattered
-    returns and its table seen through are no surface to tell it by), and whose median height is a step above
-    the table (:func:`step_limit`: a fringe of mixed pixels along an object's foot is not a part). The cells are
-    flooded from the cores (:func:`~.morphology._flood`); two parts stay one unless their common boundary is mostly
-    a measured step and the lower one is flat (:func:`_join_parts`). The first part of a component keeps its label, the
-    others get fresh labels; returns the labels and the origin of every label (parts of one component are not
-    joined again through holes, see :func:`~.objects.split_touching`)."""
+    A core is measured surface standing on the table: a patch (:func:`surface_patches`: cells a step above the
+    table; its cells without a coherent height - unseen, or spanning a step - added from the nearest coherent
+    cell of the same component) that holds a disc of diameter ``min_width_m``, has ``min_area_m2`` of coherent
+    cells, is mostly seen in depth (at least half of its cells coherent, ``CHROMA_CLEAR_FRACTION`` of its pixels:
+    a clear body's scattered returns and its table seen through are no surface to tell it by) and whose median
+    height is a step above the table (:func:`step_limit`). The cells are flooded from the cores
+    (:func:`~.morphology._flood`); two parts stay one unless their common boundary is mostly measured and either
+    a valley or a step with the lower part flat (:func:`_join_parts`). The first part of a component keeps its
+    label, the others get fresh labels; returns the labels and the origin of every label (parts of one component
+    are not joined again through holes, see :func:`~.objects.split_touching`)."""
     n = int(labels.max()) + 1
     origin = np.arange(n) if origin is None else np.asarray(origin)
     out = labels.astype(np.int32).copy()
@@ -145,42 +148,54 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
     core[0] = False
     cores_of = np.bincount(patch_label[core], minlength=n)
     dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    s = np.nan_to_num(cells.sigma)
+    ground = np.isfinite(cells.mean) & (cells.mean <= step_limit(s, s, res))  # continuous with the table
     for lab in np.nonzero(cores_of >= 2)[0]:
         comp = labels == lab
         ids = np.nonzero(core & (patch_label == lab))[0]
         rank = np.zeros(n_patch, np.int32)
         rank[ids] = np.arange(1, ids.size + 1)
         parts = _join_parts(_flood(np.where(comp, rank[filled], 0).astype(np.int32), dist, comp), patch,
-                                 np.isfinite(cells.mean), cells.blind, height[ids], span[ids] <= FLAT_JUMP_M)
+                            np.isfinite(cells.mean), ground, cells.blind, height[ids], span[ids] <= FLAT_JUMP_M,
+                            np.nan_to_num(cells.mean) + step_limit(s, s, res))
         for part in np.unique(parts[comp & (parts > 0)])[1:]:
             out[comp & (parts == part)] = len(origin)
             origin.append(int(origin[lab]))
     return out, np.asarray(origin)
 
 
-def _join_parts(parts: np.ndarray, patch: np.ndarray, seen: np.ndarray, blind: np.ndarray,
-                     height: np.ndarray, flat: np.ndarray) -> np.ndarray:
+def _join_parts(parts: np.ndarray, patch: np.ndarray, seen: np.ndarray, ground: np.ndarray, blind: np.ndarray,
+                height: np.ndarray, flat: np.ndarray, step_up: np.ndarray) -> np.ndarray:
     """``parts`` (1..n, 0 = none; core ``k`` of median ``height[k - 1]``, ``flat`` or not) with neighbouring parts
-    joined unless their common boundary is mostly a measured step and the lower of the two is flat.
+    joined unless their common boundary is mostly measured and either a valley or a step with the lower part flat.
 
-    Measured step: of the 4-neighbour cell pairs across the boundary, those with a depth-seen cell on both sides
-    in different patches (a step, or a cell whose pixels span one) are at least those with a cell without a
-    return on a side (a clear body's parts are separated by its no-return cells, touching objects by a step).
-    Flat lower part (5th to 95th percentile of its heights within ``FLAT_JUMP_M``, as a flat support in
-    :func:`~.objects.split_flat_support`): a box's top beside a taller box is another object, while a lying
-    cylinder's crest beside its taller end cap (a flashlight's head) is not flat and stays with it."""
+    Of the 4-neighbour cell pairs across the boundary: a *valley* pair holds a cell continuous with the table
+    (``ground``) that both parts stand a step above (``step_up``, the cell's height plus :func:`step_limit`); a
+    *step* pair holds depth-seen cells in different patches above the table (a step, or a cell whose pixels span
+    one); an *open* pair holds a cell without a return (a clear body's parts are separated by its no-return cells)
+    or a ground cell not a step below both parts (a surface at the table's noise level). Measured: valley + step
+    pairs at least the open ones. Flat lower part (5th to 95th percentile of its heights within ``FLAT_JUMP_M``, as
+    a flat support in :func:`~.objects.split_flat_support`): a box's top beside a taller box is another object,
+    while a lying cylinder's crest beside its taller end cap (a flashlight's head) is not flat and stays with it."""
     n_parts = height.size
     step = np.zeros((n_parts + 1, n_parts + 1))
     unseen = np.zeros((n_parts + 1, n_parts + 1))
+    valley = np.zeros((n_parts + 1, n_parts + 1))
     for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
         pa, pb = parts[a], parts[b]
         cross = (pa > 0) & (pb > 0) & (pa != pb)
         both = seen[a] & seen[b]
-        is_step = cross & both & ((patch[a] != patch[b]) | (patch[a] == 0))
-        is_blind = cross & (blind[a] | blind[b])
+        low = cross & (ground[a] | ground[b])
+        # a valley: a cell continuous with the table, both parts a step higher than it
+        deep = np.minimum(height[np.maximum(pa, 1) - 1], height[np.maximum(pb, 1) - 1]) \
+            > np.where(ground[a], step_up[a], -np.inf).clip(min=np.where(ground[b], step_up[b], -np.inf))
+        is_valley = low & deep
+        is_step = cross & both & ~low & ((patch[a] != patch[b]) | (patch[a] == 0))
+        is_blind = cross & ((blind[a] | blind[b]) | (low & ~deep))
         np.add.at(step, (pa[is_step], pb[is_step]), 1.0)
+        np.add.at(valley, (pa[is_valley], pb[is_valley]), 1.0)
         np.add.at(unseen, (pa[is_blind], pb[is_blind]), 1.0)
-    step, unseen = step + step.T, unseen + unseen.T
+    step, valley, unseen = step + step.T, valley + valley.T, unseen + unseen.T
     root = np.arange(n_parts + 1)
 
     def find(i: int) -> int:
@@ -189,8 +204,9 @@ def _join_parts(parts: np.ndarray, patch: np.ndarray, seen: np.ndarray, blind: n
             i = root[i]
         return i
 
-    for i, j in zip(*np.nonzero(np.triu((step + unseen) > 0, 1)), strict=True):
+    for i, j in zip(*np.nonzero(np.triu((step + valley + unseen) > 0, 1)), strict=True):
         lower = i if height[i - 1] <= height[j - 1] else j
-        if step[i, j] < max(unseen[i, j], 1.0) or not flat[lower - 1]:
+        measured = step[i, j] + valley[i, j] >= max(unseen[i, j], 1.0)
+        if not measured or not (valley[i, j] >= step[i, j] or flat[lower - 1]):
             root[find(int(j))] = find(int(i))
     return np.array([find(i) for i in range(n_parts + 1)])[parts]
