@@ -223,6 +223,11 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
     several objects joins them; a hole region touching no object is an object of its own (entirely
     specular / transparent).
 
+    Components are split at necks (:func:`split_touching`), with ``height`` (m, NaN = not seen in depth) at flat
+    supports (:func:`split_flat_support`) and, with ``sigma`` (m, each pixel's height noise), at height steps
+    (:func:`~.steps.split_height_steps`, its cores at least the minimum object ``min_area_m2`` and a jaw face of
+    its side wide).
+
     Returns the raster and the per-pixel labels (0 = not evidence or off the table)."""
     lo, hi = inlier_xy.min(axis=0), inlier_xy.max(axis=0)
     res = max(5e-4, 2.0 * footprint_m)
