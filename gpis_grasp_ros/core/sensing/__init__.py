@@ -10,7 +10,8 @@ PR2 head camera), these stages, one module each:
    per pixel by inverse variance.
 4. :mod:`.occlusion` - what was not measured: returns seen through a clear part, the sensor's shadow, and
    where a pixel without a return lies on its ray (the visual hull of the objects next to it).
-5. :mod:`.objects` - evidence components in the table plane, split where objects touch; the target.
+5. :mod:`.objects` - evidence components in the table plane, split where objects touch (at necks, flat supports
+   and height steps, :mod:`.steps`); the target.
 6. :mod:`.clear_body` - the table seen through a clear target joins it; a clear body is a prism.
 7. :mod:`.rasterise` - the square grid in the table plane around the target, cells from the pixels' feet.
 8. :mod:`.noise_map` - the variance of each cell's SDF value and the cells the GPIS is not trained on.

@@ -28,6 +28,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SPLIT_NECK_M,
     SensingParams,
 )
+from gpis_grasp_ros.core.sensing.steps import cell_heights, split_height_steps
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
 
@@ -210,8 +211,8 @@ def _merge_across_small_holes(labels: np.ndarray, lab_miss: np.ndarray, n_miss: 
 
 
 def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.ndarray, inlier_xy: np.ndarray,
-                      footprint_m: float, attach_m: float,
-                      height: np.ndarray | None = None) -> tuple[_Raster, np.ndarray]:
+                      footprint_m: float, attach_m: float, height: np.ndarray | None = None,
+                      sigma: np.ndarray | None = None, min_area_m2: float = 0.0) -> tuple[_Raster, np.ndarray]:
     """Rasterise the evidence pixels' feet over the table's extent and label connected components.
 
     Components are built from the positive evidence (depth or colour). Holes (missing pixels) are
@@ -221,6 +222,11 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
     and is at most 2 ``MISSING_BRIDGE_M`` across; a small hole region (``MISSING_BRIDGE_M``) touching
     several objects joins them; a hole region touching no object is an object of its own (entirely
     specular / transparent).
+
+    Components are split at necks (:func:`split_touching`), with ``height`` (m, NaN = not seen in depth) at flat
+    supports (:func:`split_flat_support`) and, with ``sigma`` (m, each pixel's height noise), at height steps
+    (:func:`~.steps.split_height_steps`, its cores at least the minimum object ``min_area_m2`` and a jaw face of
+    its side wide).
 
     Returns the raster and the per-pixel labels (0 = not evidence or off the table)."""
     lo, hi = inlier_xy.min(axis=0), inlier_xy.max(axis=0)
@@ -245,13 +251,12 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
 
     n_pos, lab_pos = cv2.connectedComponents(mark(use & ~missing), connectivity=8)
     lab_pos, origin = split_touching(lab_pos, SPLIT_NECK_M / res)  # objects in contact
-    if height is not None:  # an object standing on / next to a flat one (notebook, plate)
-        seen = use & ~missing & np.isfinite(height)
-        h_sum = np.bincount(iy[seen] * nx + ix[seen], weights=height[seen], minlength=nx * ny)
-        h_cnt = np.bincount(iy[seen] * nx + ix[seen], minlength=nx * ny)
-        with np.errstate(invalid='ignore', divide='ignore'):
-            cell_h = np.where(h_cnt > 0, h_sum / np.maximum(h_cnt, 1), np.nan).reshape(ny, nx)
-        lab_pos, origin = split_flat_support(lab_pos, cell_h, res, origin)
+    if height is not None:  # an object standing on / next to a flat one (notebook, plate); touching at a step
+        cells = cell_heights(iy, ix, use, height, np.zeros(height.shape) if sigma is None else sigma, missing,
+                             (ny, nx))
+        lab_pos, origin = split_flat_support(lab_pos, cells.mean, res, origin)
+        if sigma is not None:
+            lab_pos, origin = split_height_steps(lab_pos, cells, res, math.sqrt(min_area_m2), min_area_m2, origin)
     n_pos = int(lab_pos.max()) + 1
     n_miss, lab_miss = cv2.connectedComponents(mark(use & missing) & (lab_pos == 0).astype(np.uint8), connectivity=8)
     labels = lab_pos.astype(np.int32)
@@ -282,16 +287,22 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
 SOLID_SIGMAS = float(-ndtri(SOLID_FALSE_ALARM))
 
 
+def _noise_ratio(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray) -> float:
+    """The table inliers' measured RMS height over their modelled one (1 without inliers)."""
+    res_h = height[inlier]
+    model = s_h[inlier]
+    return math.sqrt(float(np.mean(res_h ** 2)) / max(float(np.mean(model ** 2)), 1e-18)) if res_h.size else 1.0
+
+
 def solid_pixels(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray, h_thr: float,
-                 missing: np.ndarray) -> np.ndarray:
+                 missing: np.ndarray, ratio: float | None = None) -> np.ndarray:
     """Pixels that are surely not the table: depth-seen more than ``SOLID_SIGMAS`` sigma above it, or ``missing``.
 
     sigma is each pixel's height noise ``s_h`` (m, the sensor model at its depth and incidence) scaled by the
-    table inliers' measured RMS height over their modelled one (a filtered depth image is less noisy than the
-    model, a rough table or a misfitted plane more); at least the depth-evidence threshold ``h_thr``."""
-    res_h = height[inlier]
-    model = s_h[inlier]
-    ratio = math.sqrt(float(np.mean(res_h ** 2)) / max(float(np.mean(model ** 2)), 1e-18)) if res_h.size else 1.0
+    table inliers' measured RMS height over their modelled one (``ratio``, from ``inlier`` when not given: a
+    filtered depth image is less noisy than the model, a rough table or a misfitted plane more); at least the
+    depth-evidence threshold ``h_thr``."""
+    ratio = _noise_ratio(height, s_h, inlier) if ratio is None else ratio
     thr = np.maximum(h_thr, SOLID_SIGMAS * ratio * s_h)
     return (np.nan_to_num(height, nan=-np.inf) > thr) | missing
 
@@ -459,10 +470,12 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
     rim = inlier & ~cv2.erode(inlier.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                               borderValue=0).astype(bool)
     inlier_xy = foot_xy[rim]
-    raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
-                                          np.where(ev.p_d > 0.5, height, np.nan))
     on_plane = inlier & (np.abs(np.nan_to_num(height, nan=np.inf)) <= fit.band)  # not moved by the see-through test
-    solid = solid_pixels(height, meas.s_h, on_plane, fit.h_thr, missing_px & evidence)
+    ratio = _noise_ratio(height, meas.s_h, on_plane)
+    raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
+                                          np.where(ev.p_d > 0.5, height, np.nan), max(ratio, 1.0) * meas.s_h,
+                                          params.min_object_area_m2)
+    solid = solid_pixels(height, meas.s_h, on_plane, fit.h_thr, missing_px & evidence, ratio)
     kept = object_labels(px_labels, raster, foot_xy, solid, params)
     target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics, kept)
     target_px = px_labels == target

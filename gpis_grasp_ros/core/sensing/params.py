@@ -203,3 +203,10 @@ class SensingResult:
     def sdf(self) -> np.ndarray:
         """Signed distance (m) of the occupancy (>= 0.5 is object), :func:`~gpis_grasp_ros.core.sdf.signed_distance`."""
         return signed_distance(self.occupancy, self.geometry.resolution)
+
+
+# Touching objects split at height steps (steps.split_height_steps): two neighbouring raster cells are on one
+# continuous surface when their heights differ by at most steps.STEP_SIGMAS x the sensor model's noise of the difference
+STEP_FALSE_ALARM = 1e-3  # (two-sided probability per edge that noise alone breaks one surface: 3.29 sigma)
+STEP_SLOPE_DEG = 45.0  # ... plus the rise over one cell of a surface this steep; a steeper one is narrower in plan
+#                        than it is high: its cells are slivers that join the part beside them
