@@ -1,4 +1,4 @@
-"""GP-GPIS-OPT and adaptive GP-P P_F at forced M = 25, 50, 100 on shipped top-down bags (a study: docs/planning.md).
+"""GP-GPIS-OPT and adaptive GP-P P_F at forced M = 25, 50, 100 on shipped top-down bags (a study: docs/planning.md)."""
 import sys
 from pathlib import Path
 
