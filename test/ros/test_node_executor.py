@@ -31,7 +31,7 @@ def test_parameters_are_answered_while_the_pool_is_busy(kind):
     node = rclpy.create_node('busy', context=context)
     node.declare_parameter('answer', 42)
     node.create_service(Trigger, 'block', block, callback_group=ReentrantCallbackGroup())
-    executor = NodeExecutor(2, node) if kind == 'nodes' else MultiThreadedExecutor(num_threads=2, context=context)
+    executor = NodeExecutor(2, context) if kind == 'nodes' else MultiThreadedExecutor(num_threads=2, context=context)
     executor.add_node(node)
     if kind == 'nodes':
         executor.start_defaults()

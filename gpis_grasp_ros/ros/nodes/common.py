@@ -121,11 +121,18 @@ class NodeExecutor(MultiThreadedExecutor):
     parameter request arrives; this executor waits on and runs everything else (docs/reliability.md).
     """
 
-    def __init__(self, num_threads: int, node: Node) -> None:
-        super().__init__(num_threads=num_threads, context=node.context)
-        self._defaults = node.default_callback_group
-        self.defaults = _GroupExecutor(node)
+    def __init__(self, num_threads: int, context: Any = None) -> None:
+        # both executors exist before the node does: a signal arriving once the node is up never finds an
+        # executor half-built (rclpy's Executor.__del__ then reports a missing attribute)
+        super().__init__(num_threads=num_threads, context=context)
+        self._defaults: Any = None
+        self.defaults = _GroupExecutor(context)
         self._defaults_thread = threading.Thread(target=self.defaults.serve, name='parameter-services', daemon=True)
+
+    def add_node(self, node: Node) -> bool:
+        self._defaults = node.default_callback_group
+        self.defaults.bind(node)
+        return super().add_node(node)
 
     def can_execute(self, entity: Any) -> bool:
         return entity.callback_group is not self._defaults and super().can_execute(entity)
@@ -147,12 +154,16 @@ class NodeExecutor(MultiThreadedExecutor):
 class _GroupExecutor(SingleThreadedExecutor):
     """Runs only the entities of ``node``'s default callback group, in the thread calling :meth:`serve`."""
 
-    def __init__(self, node: Node) -> None:
-        super().__init__(context=node.context)
-        self._node = node
-        self._group = node.default_callback_group
-        self._nodes_arg = [node]
+    def __init__(self, context: Any = None) -> None:
+        super().__init__(context=context)
+        self._node: Any = None
+        self._group: Any = None
+        self._nodes_arg: list[Node] = []
         self._stop = threading.Event()
+
+    def bind(self, node: Node) -> None:
+        """Serve ``node``'s default callback group."""
+        self._node, self._group, self._nodes_arg = node, node.default_callback_group, [node]
 
     def can_execute(self, entity: Any) -> bool:
         return entity.callback_group is self._group and super().can_execute(entity)
@@ -323,8 +334,8 @@ def run_node(node_class: type[GuardedNode], args: list[str] | None = None) -> in
     node = executor = None
     status = 0
     try:
+        executor = NodeExecutor(node_class.executor_threads)
         node = node_class()
-        executor = NodeExecutor(node_class.executor_threads, node)
         executor.add_node(node)
         executor.start_defaults()
         while rclpy.ok():
