@@ -74,6 +74,16 @@ def test_an_answer_the_middleware_refused_is_sent_again():
         ros.close()
 
 
+def _planner_with_model(ros: RosHarness, model_msg):
+    """A small planner_node in ``ros`` holding ``model_msg`` (latched by a probe node); (probe, planner)."""
+    planner = ros.add(PlannerNode(context=ros.context, parameter_overrides=[
+        Parameter('num_shape_samples', value=50), Parameter('num_grasp_samples', value=20)]))
+    probe = ros.node('probe')
+    probe.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS).publish(model_msg)
+    assert wait_for(planner.has_model, 20.0)
+    return probe, planner
+
+
 def test_a_repeated_seeded_call_is_planned_once(model_msg, monkeypatch):
     real = planners.plan
     calls = []
@@ -85,11 +95,7 @@ def test_a_repeated_seeded_call_is_planned_once(model_msg, monkeypatch):
     monkeypatch.setattr(planners, 'plan', counting)
     ros = RosHarness()
     try:
-        planner = ros.add(PlannerNode(context=ros.context, parameter_overrides=[
-            Parameter('num_shape_samples', value=50), Parameter('num_grasp_samples', value=20)]))
-        probe = ros.node('probe')
-        probe.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS).publish(model_msg)
-        assert wait_for(planner.has_model, 20.0)
+        probe, planner = _planner_with_model(ros, model_msg)
         cli = probe.create_client(GraspPlan, 'plan_grasp', qos_profile=SERVICE_QOS)
         assert cli.wait_for_service(timeout_sec=10.0)
         request = GraspPlan.Request(method='gp-m', seed=7)
@@ -150,10 +156,7 @@ def test_the_action_path_asks_again_and_the_goal_is_planned_once(model_msg, monk
     monkeypatch.setattr(planners, 'plan', counting)
     ros = RosHarness()
     try:
-        planner = ros.add(PlannerNode(context=ros.context, parameter_overrides=[
-            Parameter('num_shape_samples', value=50), Parameter('num_grasp_samples', value=20)]))
-        ros.node('probe').create_publisher(GpisModel, 'gpis/model', LATCHED_QOS).publish(model_msg)
-        assert wait_for(planner.has_model, 20.0)
+        _probe, planner = _planner_with_model(ros, model_msg)
         client = client_api.GraspPlannerClient(context=ros.context)
         try:
             assert client.wait_until_ready(timeout=20.0)

@@ -161,15 +161,21 @@ def _drift_statistic(x: np.ndarray, grad: np.ndarray, log_bounds: list[tuple[flo
         return math.inf, len(free)
 
 
+def _search_setup(geometry: GridGeometry, obs: _Observations, params: GpisParams, eligible: np.ndarray | None,
+                  inscribed_radius_m: float | None, rng: np.random.Generator):
+    """The search subset (drawn with ``rng``), its likelihood workspace, residuals, noise and (C, l) bounds."""
+    sub = _search_subset(obs, params.max_opt_points, rng, eligible)
+    resid = sub.y - np.where(sub.kind == VALUE, params.prior_mean, 0.0)
+    bounds = hyperparameter_bounds(geometry, params, inscribed_radius_m)
+    return sub, _LikelihoodWorkspace(sub), resid, sub.noise + params.jitter, bounds
+
+
 def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: GpisParams,
                          eligible: np.ndarray | None, inscribed_radius_m: float | None,
                          warm_start: HyperparameterFit | None = None) -> HyperparameterFit:
-    rng = np.random.default_rng(params.seed)
-    sub = _search_subset(obs, params.max_opt_points, rng, eligible)
-    workspace = _LikelihoodWorkspace(sub)
-    resid = sub.y - np.where(sub.kind == VALUE, params.prior_mean, 0.0)
-    noise = sub.noise + params.jitter
-    (c_lo, c_hi), (l_lo, l_hi) = bounds = hyperparameter_bounds(geometry, params, inscribed_radius_m)
+    rng = np.random.default_rng(params.seed)  # the subset, then the restarts' starts
+    sub, workspace, resid, noise, bounds = _search_setup(geometry, obs, params, eligible, inscribed_radius_m, rng)
+    (c_lo, c_hi), (l_lo, l_hi) = bounds
     log_bounds = [(math.log(c_lo), math.log(c_hi)), (math.log(l_lo), math.log(l_hi))]
     failures, evaluations = [0], [0]
 
@@ -278,12 +284,9 @@ def fisher_scoring_search(geometry: GridGeometry, obs: _Observations, params: Gp
     three starts guard against a second optimum); ``bench gpis --bags`` compares the two.
     """
     with blas_threads(params.blas_threads):
-        rng = np.random.default_rng(params.seed)
-        sub = _search_subset(obs, params.max_opt_points, rng, eligible)
-        ws = _LikelihoodWorkspace(sub)
-        resid = sub.y - np.where(sub.kind == VALUE, params.prior_mean, 0.0)
-        noise = sub.noise + params.jitter
-        (c_lo, c_hi), (l_lo, l_hi) = bounds = hyperparameter_bounds(geometry, params, inscribed_radius_m)
+        sub, ws, resid, noise, bounds = _search_setup(geometry, obs, params, eligible, inscribed_radius_m,
+                                                      np.random.default_rng(params.seed))
+        (c_lo, c_hi), (l_lo, l_hi) = bounds
         lo, hi = np.log([c_lo, l_lo]), np.log([c_hi, l_hi])
         log_bounds = list(zip(lo.tolist(), hi.tolist(), strict=True))
         evaluations = [0]
