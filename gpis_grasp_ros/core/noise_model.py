@@ -49,6 +49,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.stats import chi2
 
 SIGMA_Z_CONSTANT_M = 0.0012
@@ -152,12 +153,64 @@ def quantise(depth_m: np.ndarray) -> np.ndarray:
 
 
 def distinct_frames(depth_frames: np.ndarray) -> np.ndarray:
-    """Indices of the frames that are not an exact repeat of an earlier frame (NaN = NaN)."""
+    """Indices of the frames that are not an exact repeat of an earlier frame: every return the same and no return
+    (NaN, inf or <= 0, however encoded) where the other has none."""
+    frames = np.ascontiguousarray(depth_frames, dtype=np.float64)
+    flat = frames.reshape(frames.shape[0], -1)
     keep: list[int] = []
-    for i in range(depth_frames.shape[0]):
-        if not any(np.array_equal(depth_frames[i], depth_frames[j], equal_nan=True) for j in keep):
+    for i in range(flat.shape[0]):
+        if not any(_same_returns(flat[i], flat[j]) for j in keep):
             keep.append(i)
     return np.asarray(keep, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _same_returns(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two flat depth frames hold the same returns (stops at the first difference)."""
+    for k in range(a.size):
+        x, y = a[k], b[k]
+        x_ok = np.isfinite(x) and x > 0.0
+        y_ok = np.isfinite(y) and y > 0.0
+        if x_ok != y_ok or (x_ok and x != y):
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _temporal_moments(flat: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sample variance (ddof 1) and mean over the frames ``idx`` of the pixels of ``flat`` (N, P) with a return in
+    all of them, in pixel order: what ``values.var(axis=0, ddof=1)`` and ``values.mean(axis=0)`` give for
+    ``values = flat[idx][:, ok]`` (the same sums in the same order: frame after frame)."""
+    n = idx.size
+    ok = np.ones(flat.shape[1], dtype=np.bool_)
+    count = 0
+    for p in range(flat.shape[1]):
+        for i in idx:
+            x = flat[i, p]
+            if not (np.isfinite(x) and x > 0.0):
+                ok[p] = False
+                break
+        if ok[p]:
+            count += 1
+    s2 = np.empty(count)
+    mean = np.empty(count)
+    k = 0
+    for p in range(flat.shape[1]):
+        if not ok[p]:
+            continue
+        s = flat[idx[0], p]
+        for j in range(1, n):
+            s += flat[idx[j], p]
+        m = s / n
+        d = flat[idx[0], p] - m
+        q = d * d
+        for j in range(1, n):
+            d = flat[idx[j], p] - m
+            q += d * d
+        s2[k] = q / (n - 1)
+        mean[k] = m
+        k += 1
+    return s2, mean
 
 
 def effective_frame_count(depth_frames: np.ndarray, model: SensorModel, min_pixels: int = 50) -> float:
@@ -171,19 +224,17 @@ def effective_frame_count(depth_frames: np.ndarray, model: SensorModel, min_pixe
     (a paused driver, a still image played in a loop, strong temporal filtering) give n_eff ~ 1,
     so the averaged variance sigma^2 / n_eff is not under-estimated. With fewer than
     ``min_pixels`` such pixels the frames are counted as independent (n) - nothing was measured.
+    A pixel has a return where its depth is finite and > 0 (NaN, inf and <= 0 are no return).
     """
-    frames = np.asarray(depth_frames, dtype=np.float64)
+    frames = np.ascontiguousarray(depth_frames, dtype=np.float64)
     idx = distinct_frames(frames)
     n = int(idx.size)
     if n <= 1:
         return 1.0
-    sub = frames[idx]
-    ok = np.all(np.isfinite(sub) & (sub > 0), axis=0)
-    if int(ok.sum()) < min_pixels:
+    s2, mean = _temporal_moments(frames.reshape(frames.shape[0], -1), idx)
+    if s2.size < min_pixels:
         return float(n)
-    values = sub[:, ok]
-    s2 = values.var(axis=0, ddof=1)
-    model_var = model.variance(values.mean(axis=0))
+    model_var = model.variance(mean)
     # the median of a sample variance of n Gaussian values is chi2_{n-1} median / (n - 1) of the variance
     unbias = float(chi2.ppf(0.5, n - 1) / (n - 1))
     ratio = float(np.median(s2) / unbias / max(float(np.median(model_var)), 1e-18))

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+from numba import njit
 
 from gpis_grasp_ros.core.noise_model import effective_frame_count
 
@@ -152,20 +153,36 @@ class AveragedFrames(NamedTuple):
     count_eff: np.ndarray  # (H, W) effective number of averaged returns, count n_eff / N
 
 
+@njit(cache=True, nogil=True)
+def _depth_sums(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Valid returns (finite, > 0) per pixel of ``depth`` (N, P) and the sum of their depths, frame after frame
+    (the sum ``np.where(valid, depth, 0).sum(axis=0)`` makes, in the same order)."""
+    count = np.zeros(depth.shape[1], dtype=np.int64)
+    total = np.zeros(depth.shape[1])
+    for i in range(depth.shape[0]):
+        for p in range(depth.shape[1]):
+            x = np.float64(depth[i, p])
+            if np.isfinite(x) and x > 0.0:
+                count[p] += 1
+                total[p] += x
+    return count, total
+
+
 def average_frames(rgb: np.ndarray, depth_in: np.ndarray, params: SensingParams) -> AveragedFrames:
     """Depth averaged over the frames with a valid return (finite, > 0), colour over all frames; the frames are
     worth n_eff <= N independent measurements, measured from their frame-to-frame depth differences."""
-    n_frames = depth_in.shape[0]
-    depth = depth_in.astype(np.float64)
-    valid_f = np.isfinite(depth) & (depth > 0)
-    count = valid_f.sum(axis=0)
+    n_frames, h, w = depth_in.shape
+    depth = np.ascontiguousarray(depth_in if depth_in.dtype in (np.float32, np.float64) else
+                                 depth_in.astype(np.float64))
+    count, total = _depth_sums(depth.reshape(n_frames, -1))
+    count, total = count.reshape(h, w), total.reshape(h, w)
     if count.max() == 0:
         raise ValueError('depth_frames contain no valid return (all NaN or <= 0)')
     missing_px = count < max(1, params.min_valid_returns)
     valid = ~missing_px
     with np.errstate(invalid='ignore', divide='ignore'):
-        z_mean = np.where(valid, np.where(valid_f, depth, 0.0).sum(axis=0) / np.maximum(count, 1), np.nan)
+        z_mean = np.where(valid, total / np.maximum(count, 1), np.nan)
     rgb_mean = rgb.sum(axis=0, dtype=np.uint32) / float(n_frames)  # exact; no float64 copy of the frames
-    n_eff = effective_frame_count(np.where(valid_f, depth, np.nan), params.sensor) if n_frames > 1 else 1.0
+    n_eff = effective_frame_count(depth, params.sensor) if n_frames > 1 else 1.0
     count_eff = count * (n_eff / n_frames)
     return AveragedFrames(rgb_mean, z_mean, count, valid, missing_px, n_eff, count_eff)
