@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numba import njit
 
 
 def nearest_pixel(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -23,22 +24,71 @@ def _nearest_label(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _reconstruct(marker: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Grey-level morphological reconstruction by dilation of ``marker`` under ``mask`` (8-connected)."""
-    kernel = np.ones((3, 3), np.uint8)
+    """Grey-level morphological reconstruction by dilation of ``marker`` under ``mask`` (8-connected), float32.
+
+    The fixed point of ``min(dilate(out, 3 x 3), mask)`` from ``min(marker, mask)``, reached by a forward and a
+    backward raster scan and a queue of the cells still to raise (Vincent 1993); the values are copies of the
+    marker's and the mask's, so this is the same array as iterating the dilations."""
     out = np.minimum(marker, mask).astype(np.float32)
-    mask = mask.astype(np.float32)
-    while True:
-        nxt = np.minimum(cv2.dilate(out, kernel), mask)
-        if np.array_equal(nxt, out):
-            return out
-        out = nxt
+    _reconstruct_kernel(out, np.ascontiguousarray(mask, dtype=np.float32))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _reconstruct_kernel(out: np.ndarray, mask: np.ndarray) -> None:
+    rows, cols = out.shape
+    for r in range(rows):  # forward scan: the neighbours already visited
+        for c in range(cols):
+            v = out[r, c]
+            for dr, dc in ((-1, -1), (-1, 0), (-1, 1), (0, -1)):
+                rr, cc = r + dr, c + dc
+                if 0 <= rr < rows and 0 <= cc < cols and out[rr, cc] > v:
+                    v = out[rr, cc]
+            out[r, c] = min(v, mask[r, c])
+    queue = np.empty(rows * cols + 1, np.int64)
+    head = tail = 0
+    for r in range(rows - 1, -1, -1):  # backward scan; cells that may raise a neighbour are queued
+        for c in range(cols - 1, -1, -1):
+            v = out[r, c]
+            for dr, dc in ((1, 1), (1, 0), (1, -1), (0, 1)):
+                rr, cc = r + dr, c + dc
+                if 0 <= rr < rows and 0 <= cc < cols and out[rr, cc] > v:
+                    v = out[rr, cc]
+            v = min(v, mask[r, c])
+            out[r, c] = v
+            for dr, dc in ((1, 1), (1, 0), (1, -1), (0, 1)):
+                rr, cc = r + dr, c + dc
+                if 0 <= rr < rows and 0 <= cc < cols and out[rr, cc] < v and out[rr, cc] < mask[rr, cc]:
+                    queue[tail] = r * cols + c
+                    tail += 1
+                    break
+    while head < tail:
+        p = queue[head]
+        head += 1
+        r, c = p // cols, p % cols
+        v = out[r, c]
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                rr, cc = r + dr, c + dc
+                if (dr or dc) and 0 <= rr < rows and 0 <= cc < cols and out[rr, cc] < v \
+                        and out[rr, cc] != mask[rr, cc]:
+                    out[rr, cc] = min(v, mask[rr, cc])
+                    if tail == queue.size:  # the queue is full: drop its done head, grow it if still full
+                        pending = queue[head:tail].copy()
+                        if pending.size * 2 > queue.size:
+                            queue = np.empty(2 * queue.size, np.int64)
+                        queue[:pending.size] = pending
+                        tail, head = pending.size, 0
+                    queue[tail] = rr * cols + cc
+                    tail += 1
 
 
 def _flood(markers: np.ndarray, dist: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Watershed of -``dist`` from ``markers`` inside ``mask`` by flooding: level by level from the highest
     distance down (half-cell steps), the labelled regions grow (8-neighbour dilations) into the unlabelled
     mask cells at or above the level, so each cell joins the blob it is deepest in. Only the mask's bounding box
-    (and the one cell around it the dilations read) is flooded: nothing grows outside the mask."""
+    is flooded: nothing grows outside the mask. Each dilation step is done at the cells next to those the
+    previous one labelled (:func:`_flood_kernel`), the same steps as dilating the whole box."""
     result = np.zeros(mask.shape, np.int32)
     rows, cols = np.nonzero(mask)
     if rows.size == 0:
@@ -46,19 +96,62 @@ def _flood(markers: np.ndarray, dist: np.ndarray, mask: np.ndarray) -> np.ndarra
     box = np.s_[max(int(rows.min()) - 1, 0):int(rows.max()) + 2, max(int(cols.min()) - 1, 0):int(cols.max()) + 2]
     markers, dist, mask = markers[box], dist[box], mask[box]
     out = np.where(mask, markers, 0).astype(np.float32)
-    kernel = np.ones((3, 3), np.uint8)
     levels = np.unique(np.floor(dist[mask & (markers == 0)] * 2.0) / 2.0)[::-1]
-    for level in levels:
-        allowed = mask & (dist >= level)
-        while True:
-            free = allowed & (out == 0)
-            grown = cv2.dilate(out, kernel)
-            take = free & (grown > 0)
-            if not take.any():
-                break
-            out[take] = grown[take]
+    _flood_kernel(out, np.ascontiguousarray(dist), np.ascontiguousarray(mask), np.ascontiguousarray(levels))
     result[box] = out.astype(np.int32)
     return result
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _neighbour_max(out, r, c):
+    rows, cols = out.shape
+    g = np.float32(0.0)
+    for rr in range(max(r - 1, 0), min(r + 2, rows)):
+        for cc in range(max(c - 1, 0), min(c + 2, cols)):
+            if out[rr, cc] > g:
+                g = out[rr, cc]
+    return g
+
+
+@njit(cache=True, nogil=True)
+def _flood_kernel(out, dist, mask, levels) -> None:
+    """The flooding of :func:`_flood` in place on ``out`` (float32 labels, 0 = none): at every level, steps in
+    which each free allowed cell (in ``mask``, ``dist`` >= level, unlabelled) with a labelled 8-neighbour takes
+    the largest label around it, all from the labels before the step, until none changes."""
+    rows, cols = out.shape
+    cand = np.empty(rows * cols, np.int64)
+    nxt = np.empty(rows * cols, np.int64)
+    vals = np.empty(rows * cols, np.float32)
+    stamp = np.full(rows * cols, -1, np.int64)
+    step = 0
+    for level in levels:
+        n = 0
+        for r in range(rows):
+            for c in range(cols):
+                if mask[r, c] and dist[r, c] >= level and out[r, c] == 0:
+                    g = _neighbour_max(out, r, c)
+                    if g > 0:
+                        cand[n] = r * cols + c
+                        vals[n] = g
+                        n += 1
+        while n > 0:
+            for k in range(n):
+                out[cand[k] // cols, cand[k] % cols] = vals[k]
+            step += 1
+            m = 0
+            for k in range(n):
+                r, c = cand[k] // cols, cand[k] % cols
+                for rr in range(max(r - 1, 0), min(r + 2, rows)):
+                    for cc in range(max(c - 1, 0), min(c + 2, cols)):
+                        q = rr * cols + cc
+                        if stamp[q] != step and mask[rr, cc] and dist[rr, cc] >= level and out[rr, cc] == 0:
+                            stamp[q] = step
+                            nxt[m] = q
+                            m += 1
+            for k in range(m):
+                vals[k] = _neighbour_max(out, nxt[k] // cols, nxt[k] % cols)
+            cand, nxt = nxt, cand
+            n = m
 
 
 def _filled(mask: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from scipy.ndimage import find_objects
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.special import ndtri
@@ -28,6 +29,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SPLIT_NECK_M,
     SensingParams,
 )
+from gpis_grasp_ros.core.sensing.pixel_kernels import raster_cells
 from gpis_grasp_ros.core.sensing.steps import cell_heights, split_height_steps
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
@@ -45,12 +47,7 @@ class _Raster:
         """(column, row, in the raster) of the cell under each table point ``xy`` (..., 2) (0, 0 outside)."""
         if self._last is not None and self._last[0] is xy:
             return self._last[1]
-        idx = np.floor((np.asarray(xy) - self.origin) / self.res)
-        ny, nx = self.labels.shape
-        ok = np.isfinite(idx).all(axis=-1) & (idx[..., 0] >= 0) & (idx[..., 0] < nx) & (idx[..., 1] >= 0) \
-            & (idx[..., 1] < ny)
-        idx = np.where(ok[..., None], idx, 0).astype(np.int64)
-        self._last = (xy, (idx[..., 0], idx[..., 1], ok))
+        self._last = (xy, raster_cells(xy, self.origin, self.res, self.labels.shape))
         return self._last[1]
 
 
@@ -93,7 +90,9 @@ def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, n
         comp = lab_f == comp_id
         flooded = _flood(np.where(comp & (markers > 0), markers, 0), dist, comp)
         cells = comp & (labels > 0)
-        pairs = np.unique(np.stack([labels[cells], flooded[cells]], axis=1), axis=0)
+        parts = int(flooded.max()) + 1  # the (label, part) pairs in order, one integer key each
+        keys = np.unique(labels[cells].astype(np.int64) * parts + flooded[cells])
+        pairs = np.stack([keys // parts, keys % parts], axis=1)
         seen: set[int] = set()
         for lab, part in pairs:
             if int(lab) not in seen:  # the first part of each original label keeps the label
@@ -195,14 +194,20 @@ def _merge_across_small_holes(labels: np.ndarray, lab_miss: np.ndarray, n_miss: 
         return a
 
     grown = cv2.dilate((labels > 0).astype(np.uint8), np.ones((3, 3), np.uint8))
+    boxes = find_objects(lab_miss)
+    ny, nx = lab_miss.shape
     for c in np.nonzero(touching)[0]:
-        if c == 0:
+        if c == 0 or boxes[c - 1] is None:
             continue
-        rows, cols = np.nonzero(lab_miss == c)
+        rs, cs = boxes[c - 1]
+        rows, cols = np.nonzero(lab_miss[rs, cs] == c)
         if math.hypot(np.ptp(rows), np.ptp(cols)) * res > MISSING_BRIDGE_M:
             continue
-        ring = cv2.dilate((lab_miss == c).astype(np.uint8), np.ones((3, 3), np.uint8)) & grown
-        near = np.unique(labels[(ring > 0) & (labels > 0) & (labels <= n_pos)])
+        # the region's box and the cell around it that its dilation reaches
+        box = np.s_[max(rs.start - 1, 0):min(rs.stop + 1, ny), max(cs.start - 1, 0):min(cs.stop + 1, nx)]
+        ring = cv2.dilate((lab_miss[box] == c).astype(np.uint8), np.ones((3, 3), np.uint8)) & grown[box]
+        lab_box = labels[box]
+        near = np.unique(lab_box[(ring > 0) & (lab_box > 0) & (lab_box <= n_pos)])
         for other in near[1:]:
             if source[int(other)] != source[int(near[0])]:
                 parent[find(int(other))] = find(int(near[0]))
@@ -269,12 +274,14 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
             nearest, dist, touching = np.zeros_like(labels), np.full(labels.shape, np.inf), np.zeros(n_miss, bool)
         attach = (lab_miss > 0) & touching[lab_miss] & (dist * res <= attach_m)
         labels[attach] = nearest[attach]
+        boxes = find_objects(lab_miss)  # each hole region's bounding box
         for c in np.nonzero(touching)[0]:  # a hole region of one object only (a specular lever): all of it
-            cells = lab_miss == c
+            box = boxes[c - 1]
+            cells = lab_miss[box] == c
             rows, cols = np.nonzero(cells)
-            owners = np.unique(nearest[cells & (dist <= 1.5)])
+            owners = np.unique(nearest[box][cells & (dist[box] <= 1.5)])
             if owners.size == 1 and math.hypot(np.ptp(rows), np.ptp(cols)) * res <= 2 * MISSING_BRIDGE_M:
-                labels[cells] = owners[0]
+                labels[box][cells] = owners[0]
         alone = (lab_miss > 0) & ~touching[lab_miss]
         labels[alone] = n_pos + lab_miss[alone]
         labels = _merge_across_small_holes(labels, lab_miss, n_miss, n_pos, touching, res, origin)

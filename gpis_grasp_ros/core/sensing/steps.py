@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from numba import njit
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.special import ndtri
@@ -124,8 +125,7 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
         edge |= pad[1 + dy:pad.shape[0] - 1 + dy, 1 + dx:pad.shape[1] - 1 + dx] != filled
     inner = cv2.distanceTransform(np.pad((~edge & (filled > 0)).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
     # a disc of diameter min_width_m: its centre at least its radius from the boundary cells (which are at 0)
-    depth = np.zeros(n_patch)
-    np.maximum.at(depth, filled.ravel(), inner.ravel())
+    depth = _group_max(filled.ravel(), inner.ravel(), n_patch)
     n_cells = np.bincount(filled.ravel(), minlength=n_patch)
     measured = np.bincount(patch.ravel(), minlength=n_patch)
     depth_px = np.bincount(filled.ravel(), weights=cells.depth_px.ravel(), minlength=n_patch)
@@ -138,13 +138,13 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
     ids_sorted, h_sorted = patch[coherent][order], cells.mean[coherent][order]
     s_sorted = cells.sigma[coherent][order]
     bounds = np.searchsorted(ids_sorted, np.arange(n_patch + 1))
-    for i in np.nonzero(measured[1:] > 0)[0] + 1:
+    core = (depth >= max(0.5 * min_width_m / res - 0.5, 0.5)) & (measured * res ** 2 >= min_area_m2) \
+        & (2 * measured >= n_cells) & (depth_px >= CHROMA_CLEAR_FRACTION * evidence_px)
+    for i in np.nonzero(core[1:] & (measured[1:] > 0))[0] + 1:  # the heights of the patches that may be cores
         lo, height[i], hi = np.percentile(h_sorted[bounds[i]:bounds[i + 1]], [5.0, 50.0, 95.0])
         span[i] = hi - lo
         sigma[i] = np.median(s_sorted[bounds[i]:bounds[i + 1]])
-    core = (depth >= max(0.5 * min_width_m / res - 0.5, 0.5)) & (measured * res ** 2 >= min_area_m2) \
-        & (2 * measured >= n_cells) & (depth_px >= CHROMA_CLEAR_FRACTION * evidence_px) \
-        & (height > step_limit(sigma, sigma, res))
+    core &= height > step_limit(sigma, sigma, res)
     core[0] = False
     cores_of = np.bincount(patch_label[core], minlength=n)
     dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
@@ -162,6 +162,16 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
             out[comp & (parts == part)] = len(origin)
             origin.append(int(origin[lab]))
     return out, np.asarray(origin)
+
+
+@njit(cache=True, nogil=True)
+def _group_max(keys: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Largest of ``values`` per key 0..n-1 (0 for a key without a value): ``np.maximum.at`` on zeros."""
+    out = np.zeros(n)
+    for k in range(keys.size):
+        if values[k] > out[keys[k]]:
+            out[keys[k]] = values[k]
+    return out
 
 
 def _join_parts(parts: np.ndarray, patch: np.ndarray, seen: np.ndarray, ground: np.ndarray, blind: np.ndarray,
