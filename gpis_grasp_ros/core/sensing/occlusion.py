@@ -20,7 +20,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SHADOW_HULL_SPAN_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, draw_columns, prism_heights
+from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, draw_columns, prism_heights
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure
 from gpis_grasp_ros.core.table_frame import TableFrame
 
@@ -95,6 +95,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     span = np.linalg.norm(intrinsics.project(top_foot + lift) - intrinsics.project(top_foot), axis=-1)
     inner = np.linspace(0.0, 1.0, int(np.clip(np.ceil(np.nanmax(span, initial=1.0)) + 1, 2, 64)))[1:-1]
     fractions = np.linspace(1.0, 0.0, samples)[:-1]  # the last sample is the table itself (height 0)
+    inner = inner[coarse_to_fine(inner.size)]  # the same test, sooner off the object
     placed = prism_heights(np.ascontiguousarray(ray), ray_n, top_h, table.n, float(table.offset_m), fractions, inner,
                            camera_vector(intrinsics), obj)
     out[vs, us] = placed
