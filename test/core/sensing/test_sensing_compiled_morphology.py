@@ -9,6 +9,7 @@ import pytest
 
 from gpis_grasp_ros.core.sensing.morphology import _flood, _reconstruct
 from gpis_grasp_ros.core.sensing.pixel_kernels import raster_cells
+from gpis_grasp_ros.core.sensing.ray_kernels import coarse_to_fine
 from gpis_grasp_ros.core.sensing.steps import _group_max
 
 
@@ -130,3 +131,12 @@ def test_group_max_matches_maximum_at():
     want = np.zeros(20)
     np.maximum.at(want, keys, values)
     assert np.array_equal(_group_max(keys, values, 20), want)
+
+
+@pytest.mark.parametrize('n', [0, 1, 2, 3, 7, 16, 62])
+def test_coarse_to_fine_visits_every_sample_once_middle_first(n):
+    order = coarse_to_fine(n)
+    assert sorted(order.tolist()) == list(range(n))
+    if n >= 3:
+        assert order[0] == (n - 1) // 2
+        assert {int(order[1]), int(order[2])} == {((n - 1) // 2 - 1) // 2, ((n - 1) // 2 + 1 + n - 1) // 2}
