@@ -3,6 +3,7 @@
     python scripts/segmentation_profile.py [--root DATA] [--repeats 5] [--only NAME ...]
     python scripts/segmentation_profile.py --save FILE [--root DATA]     # every SensingResult of every case
     python scripts/segmentation_profile.py --compare FILE [--root DATA]  # ... against a saved FILE
+    python scripts/segmentation_profile.py --json FILE ...               # also every run's stage times (ms)
 
 Timing: ``time.process_time`` (CPU, which the other processes on a shared machine do not inflate) of every stage
 function ``segment_frames`` calls (each name in ``core/sensing/segment.py`` wrapped), one BLAS thread, min /
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import sys
 import time
@@ -213,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--only', nargs='*', default=None, help='cases whose name contains one of these')
     ap.add_argument('--save', type=Path, default=None)
     ap.add_argument('--compare', type=Path, default=None)
+    ap.add_argument('--json', type=Path, default=None, help='also write every run\'s stage times (ms) here')
     args = ap.parse_args(argv)
     with threadpool_limits(1):
         if args.save is not None:
@@ -221,16 +224,20 @@ def main(argv: list[str] | None = None) -> int:
         if args.compare is not None:
             return compare(equivalence_cases(args.root), args.compare)
         print(f'load average before: {os.getloadavg()[0]:.2f}')
+        runs = {}
         for key, make in timing_cases(args.root).items():
             if args.only and not any(s in key for s in args.only):
                 continue
             out = profile(make(), args.repeats)
+            runs[key] = {label: [1e3 * v for v in values] for label, values in out.items()}
             print(f'\n{key} (CPU ms, min / median of {args.repeats})\n\n| stage | ms |\n|---|---:|')
             for label, values in out.items():
                 ms = 1e3 * np.asarray(values)
                 print(f'| {label} | {ms.min():.0f} / {np.median(ms):.0f} |')
             sys.stdout.flush()
         print(f'\nload average after: {os.getloadavg()[0]:.2f}')
+        if args.json is not None:
+            args.json.write_text(json.dumps(runs))
     return 0
 
 
