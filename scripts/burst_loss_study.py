@@ -44,7 +44,19 @@ def main(argv: list[str] | None = None) -> int:
     if a.domain is not None:
         os.environ['ROS_DOMAIN_ID'] = str(a.domain)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    # CPU-burning processes; each ends after 30 min or when this process is gone
+    hog = ('import os, time\nparent, end = os.getppid(), time.monotonic() + 1800\n'
+           'while time.monotonic() < end and os.getppid() == parent:\n    t = time.monotonic() + 1\n'
+           '    while time.monotonic() < t: pass\n')
+    hogs = [subprocess.Popen([sys.executable, '-c', hog], stdout=subprocess.DEVNULL) for _ in range(a.hogs)]
+    try:
+        return _study(a)
+    finally:
+        for h in hogs:
+            h.kill()
 
+
+def _study(a: argparse.Namespace) -> int:
     from rclpy.callback_groups import ReentrantCallbackGroup
     from rclpy.executors import Executor
     from rclpy.parameter import Parameter
@@ -85,8 +97,6 @@ def main(argv: list[str] | None = None) -> int:
         return recorded
     Executor._take_client = take_client
 
-    hogs = [subprocess.Popen([sys.executable, '-c', 'import time\nend = time.monotonic() + 1800\n'
-                              'while time.monotonic() < end: pass']) for _ in range(a.hogs)]
     bag = next((ROOT / 'bags').glob('H_*.mcap'))
     post, _ = posterior_from_scene(load_bag(bag))
     factory = conversions.RclpyFactory()
@@ -115,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         with events_lock:
             events[(i.event_type, bytes(i.client_gid), i.sequence_number)].append(i.stamp.sec + 1e-9 * i.stamp.nanosec)
     listener = ros.node('introspection_listener')
-    listener.create_subscription(GraspPlan.Event, 'plan_grasp/_service_event', on_event, events_qos)
+    event_sub = listener.create_subscription(GraspPlan.Event, 'plan_grasp/_service_event', on_event, events_qos)
     service = planner.plan_service
     service.service.configure_introspection(planner.get_clock(), events_qos, ServiceIntrospectionState.METADATA)
     # which thread sent each answer: (seq, time before, time after, thread) around rclpy's send_response
@@ -139,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
             c.configure_introspection(probe.get_clock(), events_qos, ServiceIntrospectionState.METADATA)
         for c in made:
             assert c.wait_for_service(timeout_sec=10.0)
+        # the clients' event publishers matched (their first events would be lost otherwise)
+        assert wait_for(lambda: event_sub.get_publisher_count() == 1 + len(made), 20.0), 'introspection not matched'
         return made
 
     def gids_of(made: list, first_seq: int) -> dict:
@@ -219,8 +231,6 @@ def main(argv: list[str] | None = None) -> int:
           f'lost {lost_calls} of {a.reps * len(clients) * a.calls} calls; '
           f'{time.monotonic() - t_all:.0f} s; load {os.getloadavg()[0]:.1f}')
     Executor._take_client = original_take
-    for h in hogs:
-        h.kill()
     ros.close()
     return 0 if lost_calls == 0 else 1
 
