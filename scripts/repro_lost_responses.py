@@ -5,9 +5,12 @@ One server process (std_srvs/Trigger, answers after ``--work`` s of CPU work in 
 right after ``wait_for_service`` returned true and counts the answers that arrive within
 ``--timeout`` s. ``--hogs`` extra processes spin the CPU meanwhile (discovery lags). Prints the
 answered count per client and the server's count of requests taken and answers sent (with the
-RuntimeWarning rclpy issues when rmw_send_response times out). Loopback only, own domain.
+RuntimeWarning rclpy issues when rmw_send_response times out). ``--client-depth 10`` gives the clients
+rclpy's default history: every client receives every answer, and one that falls 10 behind loses its own
+(scripts/repro_shared_response_history.py shows that alone). Loopback only, own domain.
 
     python scripts/repro_lost_responses.py --clients 5 --calls 20 --hogs 2
+    python scripts/repro_lost_responses.py --clients 10 --calls 10 --hogs 3 --client-depth 10
 """
 
 from __future__ import annotations
@@ -27,10 +30,14 @@ def _burn(seconds: float) -> None:
         x += 1
 
 
-def _qos():
-    """The nodes' deep service history (a burst is not overwritten in the DDS queues)."""
+def _qos(depth: int | None = None):
+    """The nodes' deep service history (a burst is not overwritten in the DDS queues), or ``depth``."""
     from gpis_grasp_ros.ros.nodes.common import SERVICE_QOS
-    return SERVICE_QOS
+    if depth is None:
+        return SERVICE_QOS
+    from rclpy.qos import QoSProfile
+    return QoSProfile(depth=depth, history=SERVICE_QOS.history, reliability=SERVICE_QOS.reliability,
+                      durability=SERVICE_QOS.durability)
 
 
 def server(ready, stop, work: float, counts) -> None:
@@ -72,13 +79,13 @@ def server(ready, stop, work: float, counts) -> None:
     rclpy.try_shutdown()
 
 
-def client(index: int, go, calls: int, timeout: float, out) -> None:
+def client(index: int, go, calls: int, timeout: float, out, depth: int | None) -> None:
     import rclpy
     from std_srvs.srv import Trigger
 
     rclpy.init()
     node = rclpy.create_node(f'repro_client_{index}')
-    cli = node.create_client(Trigger, 'repro', qos_profile=_qos())
+    cli = node.create_client(Trigger, 'repro', qos_profile=_qos(depth))
     go.wait()
     if not cli.wait_for_service(timeout_sec=30.0):
         out.put((index, -1))
@@ -104,6 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--work', type=float, default=0.02, help='CPU seconds per call in the server')
     p.add_argument('--hogs', type=int, default=2, help='CPU-burning processes')
     p.add_argument('--timeout', type=float, default=30.0)
+    p.add_argument('--client-depth', type=int, default=None,
+                   help="the clients' response history (default: the nodes' SERVICE_QOS; rclpy's default is 10)")
     p.add_argument('--domain', type=int, default=77)
     a = p.parse_args(argv)
     os.environ['ROS_DOMAIN_ID'] = str(a.domain)
@@ -118,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     srv = ctx.Process(target=server, args=(ready, stop, a.work, counts))
     srv.start()
     ready.wait(60)
-    clients = [ctx.Process(target=client, args=(i, go, a.calls, a.timeout, out)) for i in range(a.clients)]
+    clients = [ctx.Process(target=client, args=(i, go, a.calls, a.timeout, out, a.client_depth))
+               for i in range(a.clients)]
     for c in clients:
         c.start()
     time.sleep(2.0)  # every client process is up (imports done) and waits for the signal

@@ -11,8 +11,11 @@
 
 ``plan`` uses the ``plan_grasp`` action by default (feedback, ``cancel()`` from another thread or from the
 feedback callback) or the ``plan_grasp`` service (``use_action=False``). Service clients keep the deep
-request history :data:`~gpis_grasp_ros.ros.nodes.common.SERVICE_QOS` the nodes' services use, so a burst of
-calls is not dropped by DDS (the action's goal, result and cancel services too). An answer the
+history :data:`~gpis_grasp_ros.ros.nodes.common.SERVICE_QOS` the nodes' services use (the action's goal,
+result and cancel services too): every client of a service receives the answers to all its callers, and
+with rclpy's default depth of 10 a client loses its own answer when 10 others arrive before it takes it.
+A plain rclpy client should be made the same way: ``create_client(GraspPlan, 'plan_grasp',
+qos_profile=SERVICE_QOS)``. An answer the
 middleware lost is asked for again: a service call is re-sent after :data:`ASK_AGAIN` s (with the same
 seed, chosen here when the caller gave 0, so planner_node joins the plan in progress or answers from
 its kept answers instead of planning twice); an action goal is sent again likewise with the same goal id

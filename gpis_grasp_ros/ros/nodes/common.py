@@ -54,8 +54,11 @@ RELIABLE_SENSOR_QOS = QoSProfile(
     durability=DurabilityPolicy.VOLATILE,
 )
 
-#: Request/response history of the services. The rmw default keeps 10 requests: a burst of 100
-#: concurrent calls lost 90 of them before the node could take them. The node answers every request
+#: Request/response history of the services, for servers and clients alike. The rmw default keeps 10
+#: requests: a burst of 100 concurrent calls lost 90 of them before the node could take them. A client
+#: needs it too: rmw_fastrtps sends every answer to every client of the service (each drops the others'
+#: when it takes them), so a client with the default 10 loses its own answer once 10 answers to anyone
+#: arrive before it takes it (scripts/repro_shared_response_history.py). The node answers every request
 #: it takes (planned, or "queue full" at once), so the DDS history only has to hold a burst.
 SERVICE_QUEUE_DEPTH = 1000
 SERVICE_QOS = QoSProfile(
