@@ -156,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     from gpis_grasp_interfaces.msg import GpisModel
     from gpis_grasp_interfaces.srv import ExecuteGrasp, GraspPlan
     from gpis_grasp_ros.data import messages
-    from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS
+    from gpis_grasp_ros.ros.nodes.common import LATCHED_QOS, SERVICE_QOS
     from gpis_grasp_ros.ros.nodes.gpis_node import GpisNode
     from gpis_grasp_ros.ros.nodes.gripper_sim_node import GripperSimNode
     from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
@@ -211,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         log(f'GPIS ready after {time.perf_counter() - t0:.1f} s')
         posterior = messages.gpis_model_to_posterior(models[-1])
 
-        plan_cli = client.create_client(GraspPlan, 'plan_grasp')
-        exec_cli = client.create_client(ExecuteGrasp, 'execute_grasp')
+        plan_cli = client.create_client(GraspPlan, 'plan_grasp', qos_profile=SERVICE_QOS)  # docs/reliability.md
+        exec_cli = client.create_client(ExecuteGrasp, 'execute_grasp', qos_profile=SERVICE_QOS)
         for c in (plan_cli, exec_cli):
             if not c.wait_for_service(timeout_sec=10.0):
                 log(f'service {c.srv_name} not available')
