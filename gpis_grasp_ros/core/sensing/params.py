@@ -55,6 +55,9 @@ def _box(value: Sequence[float] | None, name: str) -> tuple[float, float, float,
     return box
 
 
+PAPER_GRID_SIZE = 25  # the paper's M (Table I, the 25 x 25 validation models): the simulated benchmark's grid
+
+
 @dataclass(frozen=True)
 class SensingParams:
     """Settings of :func:`segment_frames` (lengths in metres, colours in 0-255 RGB units)."""
@@ -62,7 +65,7 @@ class SensingParams:
     cell_size_m: float = 0.003  # planning-grid cell (m): the jaw noise sigma_g, a few depth pixels (grid_cells)
     min_grid_cells: int = 25  # M at least this (the paper's M): a small object gets finer cells
     max_grid_cells: int = 100  # M at most this: a large object gets coarser cells
-    grid_size: int = 25  # > 0: force M (cells per side of the square grid), cell_size_m then ignored; 0 = the rule
+    grid_size: int = 0  # 0 = the cell rule (cell_size_m, M within [min_grid_cells, max_grid_cells]); > 0: force M
     margin: float = 0.2  # free margin on each side, fraction of the object's larger footprint side
     sensor: SensorModel = field(default_factory=lambda: CARMINE)  # depth-noise model (noise_model)
     table_plane: tuple[float, float, float, float] | None = None  # (a, b, c, d) camera frame; None = fit
