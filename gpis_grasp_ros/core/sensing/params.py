@@ -65,6 +65,7 @@ class SensingParams:
     cell_size_m: float = 0.003  # planning-grid cell (m): the jaw noise sigma_g, a few depth pixels (grid_cells)
     min_grid_cells: int = 25  # M at least this (the paper's M): a small object gets finer cells
     max_grid_cells: int = 100  # M at most this: a large object gets coarser cells
+    min_pixels_per_cell: float = 2.0  # a cell at least this many pixel footprints wide (sampling: 2 per cell)
     grid_size: int = 0  # 0 = the cell rule (cell_size_m, M within [min_grid_cells, max_grid_cells]); > 0: force M
     margin: float = 0.2  # free margin on each side, fraction of the object's larger footprint side
     sensor: SensorModel = field(default_factory=lambda: CARMINE)  # depth-noise model (noise_model)
@@ -122,6 +123,8 @@ class SensingParams:
             raise ValueError(f'grid_size must be 0 (from cell_size_m) or >= 3, got {self.grid_size}')
         if not (math.isfinite(self.cell_size_m) and self.cell_size_m > 0):
             raise ValueError(f'cell_size_m must be a positive number of metres, got {self.cell_size_m}')
+        if not (math.isfinite(self.min_pixels_per_cell) and self.min_pixels_per_cell >= 0):
+            raise ValueError(f'min_pixels_per_cell must be >= 0 (0 = cell_size_m alone), got {self.min_pixels_per_cell}')
         if not 3 <= self.min_grid_cells <= self.max_grid_cells:
             raise ValueError(f'need 3 <= min_grid_cells <= max_grid_cells, got {self.min_grid_cells} and '
                              f'{self.max_grid_cells}')
