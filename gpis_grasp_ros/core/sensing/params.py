@@ -124,7 +124,8 @@ class SensingParams:
         if not (math.isfinite(self.cell_size_m) and self.cell_size_m > 0):
             raise ValueError(f'cell_size_m must be a positive number of metres, got {self.cell_size_m}')
         if not (math.isfinite(self.min_pixels_per_cell) and self.min_pixels_per_cell >= 0):
-            raise ValueError(f'min_pixels_per_cell must be >= 0 (0 = cell_size_m alone), got {self.min_pixels_per_cell}')
+            raise ValueError(f'min_pixels_per_cell must be >= 0 (0 = cell_size_m alone), got '
+                             f'{self.min_pixels_per_cell}')
         if not 3 <= self.min_grid_cells <= self.max_grid_cells:
             raise ValueError(f'need 3 <= min_grid_cells <= max_grid_cells, got {self.min_grid_cells} and '
                              f'{self.max_grid_cells}')
