@@ -1,6 +1,6 @@
 """End-to-end replanning benchmark: camera frames → segmentation → GPIS (ML hyperparameters) → GP-GPIS-OPT → final P_F.
 
-    python -m gpis_grasp_ros.bench e2e [--repeats N] [--seed S] [--blas-threads T] [--no-frames]
+    python -m gpis_grasp_ros.bench e2e [--repeats N] [--seed S] [--blas-threads T] [--no-frames] [--grid-size M]
 
 Each stage is the project's own call timed with ``time.perf_counter`` (one BLAS thread by default, through
 threadpoolctl, as the GPIS fit sets it itself): segmentation = ``segment_frames`` + the published grids
@@ -15,6 +15,9 @@ The GPIS stage is timed cold (the multi-start search gpis_node runs on the first
 warm, as gpis_node fits the next frame: "warm" chains pass the warm-up chain's fit as ``warm_start`` (an
 unchanged scene: the score test keeps it), "drifted" fits pass it with C x 1.5 and l x 0.85 (the test rejects
 it and L-BFGS-B searches from there; timed alone, not in a chain); ev = likelihood evaluations.
+
+The planning grid is the paper's M = 25 (the camera-rate targets are set there); ``--grid-size 0`` times
+segmentation_node's default, the 3 mm cell rule (M = 30-100 on the shipped bags).
 
 Rows: a top-down bag, a head-camera bag, a real D435 capture, and whole-frame segmentation (no crop) of
 simulated 640 x 480 and 1280 x 720 frames. The machine may be shared: the load average is printed with the table.
@@ -36,6 +39,7 @@ from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
 from gpis_grasp_ros.core.planners import PlannerParams, plan
 from gpis_grasp_ros.core.sensing import CameraIntrinsics, SensingParams, segment_frames
+from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.tools.bench_gpis import drifted
 
@@ -49,13 +53,16 @@ class BagCase:
     label: str
     path: str
     frames: int = 10
-    sensing: SensingParams = SensingParams()
+    sensing: SensingParams = SensingParams(grid_size=PAPER_GRID_SIZE)
 
 
-def bag_cases() -> list[BagCase]:
+def bag_cases(grid_size: int = PAPER_GRID_SIZE) -> list[BagCase]:
     """The benchmark's bags: top-down and head-camera object A (simulated), the real D435 bottle."""
-    bottle = SensingParams(sensor=SensorModel.named('realsense_d400'), target='pixel', target_point=(220.8, 160.8))
-    return [BagCase('top-down A', 'A_tape_dispenser.mcap'), BagCase('head A', 'head/A_tape_dispenser.mcap'),
+    grid = SensingParams(grid_size=grid_size)
+    bottle = SensingParams(sensor=SensorModel.named('realsense_d400'), target='pixel', target_point=(220.8, 160.8),
+                           grid_size=grid_size)
+    return [BagCase('top-down A', 'A_tape_dispenser.mcap', sensing=grid),
+            BagCase('head A', 'head/A_tape_dispenser.mcap', sensing=grid),
             BagCase('real D435 bottle', 'real/cleargrasp_000000080_bottle.mcap', 1, bottle)]
 
 
@@ -135,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--seed', type=int, default=0, help='planner seed')
     ap.add_argument('--blas-threads', type=int, default=1, help='BLAS threads during every timed call')
     ap.add_argument('--no-frames', action='store_true', help='skip the whole-frame segmentation rows')
+    ap.add_argument('--grid-size', type=int, default=PAPER_GRID_SIZE,
+                    help=f'M of the planning grid (default {PAPER_GRID_SIZE}, the paper\'s; 0 = the cell rule)')
     args = ap.parse_args(argv)
     planner = PlannerParams()
     print(f'end to end: segmentation -> GPIS (ML) -> GP-GPIS-OPT (N_g = {planner.n_initial_grasps}) -> final P_F '
@@ -145,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
           '| end to end warm (s) | end to end cold, CPU (s) | P_F cold | P_F warm |')
     print('|---|' + '---:|' * 16)
     with threadpool_limits(args.blas_threads):
-        for case in bag_cases():
+        for case in bag_cases(args.grid_size):
             scene = load_bag(BAG_DIR / case.path, frames=case.frames)
             previous = time_chain(scene, case.sensing, planner, args.seed)  # warm-up; its fit warm-starts
             n = max(1, args.repeats)
@@ -161,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f'| {case.label} | ' + ' | '.join(cells) + ' |', flush=True)
         if not args.no_frames:
             print('\n| whole frame | segmentation (s) |\n|---|---:|')
-            sensing = SensingParams()
+            sensing = SensingParams(grid_size=args.grid_size)
             for w, h in ((640, 480), (1280, 720)):
                 rgb, depth, intr = whole_frame_scene(w, h)
                 times = []

@@ -111,7 +111,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--trials', type=int, default=10, help='simulated grasp executions per method (default 10)')
     p.add_argument('--seed', type=int, default=1, help='planner / gripper seed (default 1)')
     p.add_argument('--grid-size', type=int, default=SensingParams.grid_size,
-                   help=f'force M of the M x M GPIS grid (default {SensingParams.grid_size}: 0 = from the object and '
+                   help=f'force M of the M x M GPIS grid (default {SensingParams.grid_size}: from the object and '
                         'the cell size)')
     p.add_argument('--timeout', type=float, default=120.0, help='overall time limit in seconds (default 120)')
     p.add_argument('--sensor', choices=[m for m in SENSOR_MODELS if m != 'custom'],

@@ -83,7 +83,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         '(default 1)')
     p.add_argument('--grid-size', type=int, default=SensingParams.grid_size,
                    help=f'--evaluate: force M of the M x M planning grid, cells (default {SensingParams.grid_size}, as '
-                        'segmentation_node; 0 = from the object and the cell size)')
+                        'segmentation_node: from the object and the cell size)')
     p.add_argument('--method', default='gp-gpis-opt', choices=METHODS,
                    help='--evaluate: planner (default gp-gpis-opt, as planner_node)')
     p.add_argument('--clear-body-height', type=float, default=0.0, metavar='M',

@@ -118,5 +118,6 @@ def test_import_rgbd_help_names_defaults_and_units(capsys, monkeypatch):
     text = ' '.join(capsys.readouterr().out.split())
     assert 'OpenEXR' in text and '_fx' in text
     assert 'table-plane fit of the ground truth' in text and 'segmentation of --evaluate' in text
-    for default in ('default 0.001', 'default 1)', 'default 20', 'default 25', 'default realsense_d400'):
+    for default in ('default 0.001', 'default 1)', 'default 20', 'default 0, as segmentation_node',
+                    'default realsense_d400'):
         assert default in text, default

@@ -28,8 +28,9 @@ F = conversions.RclpyFactory()
 def bursts():
     """Two bursts of object A's bag (frames 0-4 and 5-9): two frames of one scene, different noise."""
     scene = load_bag(BAG_A)
+    params = sensing.SensingParams(grid_size=25)  # on A's 25-cell grid the first burst's l lies on its bound
     return [pipeline.publishable_grids(sensing.segment_frames(scene.rgb_frames[k:k + 5], scene.depth_frames[k:k + 5],
-                                                              scene.intrinsics)) for k in (0, 5)]
+                                                              scene.intrinsics, params)) for k in (0, 5)]
 
 
 class WarmGraph:

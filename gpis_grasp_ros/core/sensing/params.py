@@ -55,6 +55,9 @@ def _box(value: Sequence[float] | None, name: str) -> tuple[float, float, float,
     return box
 
 
+PAPER_GRID_SIZE = 25  # the paper's M (Table I, the 25 x 25 validation models): the simulated benchmark's grid
+
+
 @dataclass(frozen=True)
 class SensingParams:
     """Settings of :func:`segment_frames` (lengths in metres, colours in 0-255 RGB units)."""
@@ -62,7 +65,8 @@ class SensingParams:
     cell_size_m: float = 0.003  # planning-grid cell (m): the jaw noise sigma_g, a few depth pixels (grid_cells)
     min_grid_cells: int = 25  # M at least this (the paper's M): a small object gets finer cells
     max_grid_cells: int = 100  # M at most this: a large object gets coarser cells
-    grid_size: int = 25  # > 0: force M (cells per side of the square grid), cell_size_m then ignored; 0 = the rule
+    min_pixels_per_cell: float = 2.0  # a cell at least this many pixel footprints wide (sampling: 2 per cell)
+    grid_size: int = 0  # 0 = the cell rule (cell_size_m, M within [min_grid_cells, max_grid_cells]); > 0: force M
     margin: float = 0.2  # free margin on each side, fraction of the object's larger footprint side
     sensor: SensorModel = field(default_factory=lambda: CARMINE)  # depth-noise model (noise_model)
     table_plane: tuple[float, float, float, float] | None = None  # (a, b, c, d) camera frame; None = fit
@@ -119,6 +123,9 @@ class SensingParams:
             raise ValueError(f'grid_size must be 0 (from cell_size_m) or >= 3, got {self.grid_size}')
         if not (math.isfinite(self.cell_size_m) and self.cell_size_m > 0):
             raise ValueError(f'cell_size_m must be a positive number of metres, got {self.cell_size_m}')
+        if not (math.isfinite(self.min_pixels_per_cell) and self.min_pixels_per_cell >= 0):
+            raise ValueError(f'min_pixels_per_cell must be >= 0 (0 = cell_size_m alone), got '
+                             f'{self.min_pixels_per_cell}')
         if not 3 <= self.min_grid_cells <= self.max_grid_cells:
             raise ValueError(f'need 3 <= min_grid_cells <= max_grid_cells, got {self.min_grid_cells} and '
                              f'{self.max_grid_cells}')

@@ -144,23 +144,27 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     return hidden.reshape(m_y, sub, m_x, sub).mean(axis=(1, 3))
 
 
-def grid_cells(side: float, params: SensingParams) -> int:
-    """M for a grid of side ``side`` (m): ``grid_size`` when forced, else cells of ``cell_size_m`` clamped to
+def grid_cells(side: float, params: SensingParams, footprint: float = 0.0) -> int:
+    """M for a grid of side ``side`` (m): ``grid_size`` when forced, else cells of ``cell_size_m``, or of
+    ``min_pixels_per_cell`` pixel footprints (``footprint``, m) where that is larger, clamped to
     [``min_grid_cells``, ``max_grid_cells``] (the cells then shrink or grow). The cell size is physical - the
-    gripper's jaw noise, several depth pixels - so the planning problem does not depend on the object's size."""
+    gripper's jaw noise, and at least two depth samples across (the grid cannot hold detail the pixels do not
+    sample) - so the planning problem does not depend on the object's size."""
     if params.grid_size > 0:
         return int(params.grid_size)
-    m = int(math.ceil(side / params.cell_size_m - 1e-9))
+    cell = max(params.cell_size_m, params.min_pixels_per_cell * footprint)
+    m = int(math.ceil(side / cell - 1e-9))
     return int(min(max(m, params.min_grid_cells), params.max_grid_cells))
 
 
-def grid_around(target_xy: np.ndarray, table: TableFrame, params: SensingParams, frame_id: str) -> GridGeometry:
+def grid_around(target_xy: np.ndarray, table: TableFrame, params: SensingParams, frame_id: str,
+                footprint: float = 0.0) -> GridGeometry:
     """The square M x M grid in the table plane: the target's footprint bounding box plus ``margin`` of its
     larger side on every side, M from :func:`grid_cells`."""
     lo, hi = target_xy.min(axis=0), target_xy.max(axis=0)
     side = float(max(hi - lo)) * (1.0 + 2.0 * params.margin)
     side = max(side, 1e-3)
-    m = grid_cells(side, params)
+    m = grid_cells(side, params, footprint)
     centre = 0.5 * (lo + hi)
     return table.grid(centre[0] - side / 2, centre[1] - side / 2, side / m, m, m, frame_id)
 
@@ -194,7 +198,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     valid, height, var_z, h_thr = frames.valid, meas.height, meas.var_z, fit.h_thr
     foot_xy, target_px, occ, p_c = feet.foot_xy, target.target_px, target.occ, target.p_c
     h, w = valid.shape
-    geometry = grid_around(target.target_xy, fit.table, params, frame_id)
+    geometry = grid_around(target.target_xy, fit.table, params, frame_id, footprint)
     m = geometry.width
     res = geometry.resolution
     col = np.floor((foot_xy[..., 0] - geometry.origin_x) / res)

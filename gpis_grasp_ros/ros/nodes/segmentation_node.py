@@ -116,6 +116,9 @@ PARAMETERS = ParamTable('segmentation_node', [
           'max_grid_cells', unit='cells', low=4, high=100),
     Param('grid_size', int, 'M: force M x M cells (the paper: 25); 0 = from grid_cell_size', _SP, unit='cells',
           low=0, high=100),
+    Param('grid_min_pixels', float, 'a planning cell is at least this many pixel footprints on the table wide '
+          '(2: two depth samples per cell); 0 = grid_cell_size alone', _SP, 'min_pixels_per_cell', unit='pixels',
+          low=0.0, high=10.0),
     Param('grid_margin', float, 'margin around the object bounding box, as a fraction of its size', _SP, 'margin',
           low=0.0, high=5.0),
     Param('height_threshold', float, 'depth mask: minimum height above the table', _SP, unit='m', low=0.0, high=0.5),

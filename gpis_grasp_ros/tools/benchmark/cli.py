@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from gpis_grasp_ros.core.sensing.params import SensingParams
+from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 from gpis_grasp_ros.tools.benchmark.evaluation import (
     METHOD_BY_KEY,
     BenchmarkResult,
@@ -129,9 +129,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument('--shape-samples', type=int, default=1000,
                    help='S shape samples of every Monte-Carlo P_F (default: 1000)')
     p.add_argument('--trials', type=int, default=20, help='simulated executions per grasp and seed (default: 20)')
-    p.add_argument('--grid-size', type=int, default=SensingParams.grid_size,
-                   help=f'force M of the M x M GPIS grid, Table I run (default: {SensingParams.grid_size}; 0 = from '
-                        'the object and the cell size)')
+    p.add_argument('--grid-size', type=int, default=PAPER_GRID_SIZE,
+                   help=f'force M of the M x M GPIS grid, Table I run (default: {PAPER_GRID_SIZE}, the paper\'s; 0 = '
+                        'from the object and the cell size, as segmentation_node)')
     p.add_argument('--blur-samples', type=int, default=1000,
                    help='joint samples of the GPIS-Blur figures (default: 1000)')
     p.add_argument('--methods', default=None,

@@ -20,6 +20,7 @@ from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.planners import PlannerParams, plan
 from gpis_grasp_ros.core.planners.params import UNCERTAINTY_PENALTY
 from gpis_grasp_ros.core.sensing import SensingParams
+from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.tools.benchmark.calibration import calibrate_object
 from gpis_grasp_ros.tools.evaluation.runner import map_reporting
@@ -111,7 +112,7 @@ class BenchmarkSettings:
     trials: int = 20  # simulated executions per grasp and seed
     n_initial_grasps: int = 20  # N_g
     uncertainty_penalty: float = UNCERTAINTY_PENALTY  # λ per m² of SDF variance
-    grid_size: int = SensingParams.grid_size  # M of the GPIS grid; 0 = from the object and the cell size
+    grid_size: int = PAPER_GRID_SIZE  # M of the GPIS grid (the paper's 25); 0 = from the object and the cell size
     blur_samples: int = 1000  # joint samples for the GPIS-Blur figures
     com_samples: int = 1000  # joint samples for the centre-of-mass spread
     methods: tuple[str, ...] = tuple(m.key for m in METHODS)  # keys of METHODS to run, in this order

@@ -45,7 +45,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help='simulated executions of each grasp on the ground truth (default 20)')
     p.add_argument('--grid-size', type=int, default=SensingParams.grid_size,
                    help=f'force M of the M x M planning grid, cells (default {SensingParams.grid_size}, as '
-                        'segmentation_node; 0 = from the target and the cell size)')
+                        'segmentation_node: from the target and the cell size)')
     p.add_argument('--out', help='write results.jsonl, results.json, table.md and reliability.png here (a rerun '
                    'with the same settings resumes; default: print only)')
     p.add_argument('--fresh', action='store_true', help='with --out: discard earlier results there')
