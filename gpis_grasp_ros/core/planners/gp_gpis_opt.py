@@ -134,7 +134,7 @@ class _ScpMonitor:
                 tr.step(value, pf)
             else:
                 tr.step()
-        tr.check()
+        tr.heartbeat()
 
 
 @stoppable('gp-gpis-opt')

@@ -106,11 +106,17 @@ class PlanControl:
     tens of milliseconds at most); a non-empty reason (e.g. ``'timeout'``,
     ``'cancelled'``, ``'shutting down'``) stops the plan, which then returns
     ``GraspResult(success=False, message='stopped: <reason>', stopped=<reason>)``.
-    ``on_progress`` is called after each finished restart/chunk.
+    ``on_progress`` is called after each finished restart/chunk, and at least every
+    :data:`HEARTBEAT_S` during a long SCP while no restart finishes (the same counts: a caller sees the plan
+    is alive and can cancel from its progress callback early).
     """
 
     should_stop: Callable[[], str | None] = never_stop
     on_progress: Callable[[PlanProgress], None] | None = None
+
+
+#: Longest gap (s) between progress reports while an SCP runs (:meth:`Tracker.heartbeat`)
+HEARTBEAT_S = 0.5
 
 
 class Stopped(Exception):
@@ -131,6 +137,7 @@ class Tracker:
         self.done = 0
         self.best_objective = float('nan')
         self.best_p_f = float('nan')
+        self.last_report = time.monotonic()
 
     def check(self) -> None:
         """Raise :class:`Stopped` if the control asks to stop."""
@@ -147,9 +154,19 @@ class Tracker:
             self.best_objective = float(best_objective)
         if best_p_f is not None:
             self.best_p_f = float(best_p_f)
+        self._report()
+        self.check()
+
+    def heartbeat(self, period: float = HEARTBEAT_S) -> None:
+        """Report progress (unchanged counts) when the last report is ``period`` s old, then check for a stop."""
+        if time.monotonic() - self.last_report >= period:
+            self._report()
+        self.check()
+
+    def _report(self) -> None:
+        self.last_report = time.monotonic()
         if self.control is not None and self.control.on_progress is not None:
             self.control.on_progress(PlanProgress(self.done, self.total, self.best_objective, self.best_p_f))
-        self.check()
 
 
 def empty_result(method: str, message: str, t_start: float, seed: int | None, **kw) -> GraspResult:
