@@ -138,10 +138,12 @@ def run_pinger(nodes: dict[str, str], duration: float, period: float = 0.05) -> 
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
+    from gpis_grasp_ros.ros.nodes.common import SERVICE_QOS
+
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGINT: KeyboardInterrupt, the figures
     node = rclpy.create_node(f'soak_pinger_{os.getpid()}')
-    clients = {name: (node.create_client(GetParameters, f'/{name}/get_parameters'), param)
-               for name, param in nodes.items()}
+    clients = {name: (node.create_client(GetParameters, f'/{name}/get_parameters', qos_profile=SERVICE_QOS), param)
+               for name, param in nodes.items()}  # the deep history every plain client needs (docs/reliability.md)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     threading.Thread(target=executor.spin, daemon=True).start()

@@ -16,6 +16,7 @@ import pytest
 
 from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
 from gpis_grasp_ros.core.sensing import SensingParams, clear_body_height, minimum_width, prism_footprint, segment_frames
+from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 from gpis_grasp_ros.core.table_frame import TableFrame
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.tools.evaluation.truth import TrueShape
@@ -147,7 +148,7 @@ def test_a_clear_body_is_trained_with_the_disagreement_variance(view):
     (it gave them a median of 5e-3 m^2, sigma ~7 cm, and the mean shape followed the table around them: IoU at
     1 mm 0.84 top-down, 0.75 head; now 0.90 and 0.84)."""
     scene = load_bag(next((BAGS / view).glob('G_*.mcap')))
-    params = SensingParams(grid_size=25)  # the variances below were measured on the 25-cell grid
+    params = SensingParams(grid_size=PAPER_GRID_SIZE)  # the variances below were measured on that grid
     result = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, params, scene.frame_id)
     clear = result.train_mask & (result.disagreement >= 1.0)  # the body and the table seen through it
     assert clear.sum() > 80

@@ -587,9 +587,10 @@ def _rendered_scene(seed: int, trans_width: float = 0.02, n_frames: int = 6, siz
 def _posterior_and_truth(seed: int, **kw):
     from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
     from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
+    from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 
     rgb, depth, intr, true_sdf, trans_x = _rendered_scene(seed, **kw)
-    result = segment_frames(rgb, depth, intr, SensingParams(grid_size=25))  # the thresholds' 25-cell grid
+    result = segment_frames(rgb, depth, intr, SensingParams(grid_size=PAPER_GRID_SIZE))  # the thresholds' grid
     post = posterior_from_grids(*publishable_grids(result))
     p = result.geometry.to_sensor(result.geometry.cell_centers(), 0.0)  # cell centres in the camera frame
     return post, result, true_sdf(p[..., 0], p[..., 1]), p, trans_x

@@ -200,7 +200,8 @@ def test_cold_search_finds_the_previous_optimum_on_the_shipped_bags(bag):
         pytest.skip(f'{path} not shipped')
     ll, c, ell = PREVIOUS[bag]
     from gpis_grasp_ros.core.sensing import SensingParams
-    post, _ = posterior_from_scene(load_bag(path), SensingParams(grid_size=25))  # the pins' grid
+    from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
+    post, _ = posterior_from_scene(load_bag(path), SensingParams(grid_size=PAPER_GRID_SIZE))  # the pins' grid
     fit = post.hyperparameter_fit
     assert fit.log_likelihood >= ll - 1e-6 * abs(ll)
     assert fit.signal_variance == pytest.approx(c, rel=1e-4)

@@ -14,12 +14,12 @@ import pytest
 
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing import SensingParams, see_through_pixels, segment_frames
+from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 from gpis_grasp_ros.core.table_frame import TableFrame
 from support.tilted_scene import Box, TiltedScene
 
 D435 = SensorModel.named('realsense_d400')
 TALL = Box(0.0, 0.0, 0.03, 0.02, 0.06)
-M25 = 25  # the footprint counts (cells 2 mm beyond the box) were set on the paper's 25-cell grid
 
 
 def _wall_facing_camera(scene: TiltedScene, box: Box, label: np.ndarray, clean: np.ndarray) -> np.ndarray:
@@ -114,9 +114,10 @@ def test_segmentation_places_a_seen_through_wall_on_the_box_not_behind_it(tilt, 
     clean, _, _ = scene.render()
     table = TableFrame.from_plane(*scene.normal, scene.offset)
     true_height = scene.intrinsics.rays() * clean[..., None] @ table.n + table.offset_m
-    on = segment_frames(rgb, depth, scene.intrinsics, SensingParams(sensor=D435, grid_size=M25))
+    # the footprint counts (cells 2 mm beyond the box) were set on the paper's 25-cell grid
+    on = segment_frames(rgb, depth, scene.intrinsics, SensingParams(sensor=D435, grid_size=PAPER_GRID_SIZE))
     off = segment_frames(rgb, depth, scene.intrinsics,
-                         SensingParams(sensor=D435, see_through_test=False, grid_size=M25))
+                         SensingParams(sensor=D435, see_through_test=False, grid_size=PAPER_GRID_SIZE))
     moved = on.seen_through_px & wall
     assert moved.sum() > 0.5 * wall.sum() and not off.seen_through_px.any()
     assert np.median(np.abs(on.height - true_height)[moved]) < 0.004

@@ -7,13 +7,14 @@ import pytest
 
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing import SensingParams, minimum_width, object_height, segment_frames
+from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 from support.tilted_scene import Box, TiltedScene
 
 BOX = Box(0.0, 0.0, 0.03, 0.02, 0.04)
 # the occupancy tests' 1 mm tolerances on cell centres were set on the paper's 25-cell grid (4-9 mm cells); on the
 # default 3 mm cells a cell straddling an edge by a pixel's footprint (1-1.5 mm) is counted as beyond it
-M25 = SensingParams(grid_size=25)
+M25 = SensingParams(grid_size=PAPER_GRID_SIZE)
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:

@@ -13,6 +13,7 @@ from std_msgs.msg import String
 
 from gpis_grasp_interfaces.msg import FloatGrid, GpisModel
 from gpis_grasp_ros.core import gpis, pipeline, sensing
+from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.data.bags import load_bag
 from gpis_grasp_ros.ros import conversions
@@ -28,7 +29,7 @@ F = conversions.RclpyFactory()
 def bursts():
     """Two bursts of object A's bag (frames 0-4 and 5-9): two frames of one scene, different noise."""
     scene = load_bag(BAG_A)
-    params = sensing.SensingParams(grid_size=25)  # on A's 25-cell grid the first burst's l lies on its bound
+    params = sensing.SensingParams(grid_size=PAPER_GRID_SIZE)  # there the first burst's l lies on its bound
     return [pipeline.publishable_grids(sensing.segment_frames(scene.rgb_frames[k:k + 5], scene.depth_frames[k:k + 5],
                                                               scene.intrinsics, params)) for k in (0, 5)]
 
