@@ -292,6 +292,36 @@ def test_box_next_to_a_notebook_is_isolated_end_to_end():
     assert g.size_m[0] < 0.12  # a grid around the 5 x 4 cm box, not the notebook
 
 
+@pytest.mark.parametrize('tilt', [20.0, 45.0])
+def test_an_object_in_contact_is_uncertain_table_in_the_targets_grid(tilt):
+    """The box against the notebook, and a second box beyond 10 mm of table with table seen between them.
+    Where the notebook touches the target the line between them is a split, not a measurement: the
+    notebook's cells in the target's grid are uncertain but trained (table by hypothesis, not unknown), with
+    at least half the disagreement variance; the separate box and the open table are measured table."""
+    notebook = Box(-0.3, 0.0, 0.3, 0.07, 0.012, rgb=(40.0, 120.0, 160.0))
+    box = Box(0.025, 0.0, 0.025, 0.02, 0.05, rgb=(200.0, 190.0, 60.0))
+    apart = Box(0.025, 0.04, 0.02, 0.01, 0.03, rgb=(60.0, 160.0, 70.0))  # 10 mm of table from the target
+    scene = TiltedScene(tilt, boxes=[notebook, box, apart])
+    rgb, depth, label = scene.frames(3, seed=4)
+    uv = scene.intrinsics.project(scene.to_camera(np.array([0.025, 0.0]), 0.05)[None])[0]
+    params = SensingParams(target='pixel', target_point=(float(uv[0]), float(uv[1])))
+    result = segment_frames(rgb, depth, scene.intrinsics, params)
+    assert np.mean(label[result.object_mask] == 2) > 0.9
+    g = result.geometry
+    cxy = scene.table_xy(g.to_sensor(g.cell_centers()))
+    x, y = cxy[..., 0], cxy[..., 1]
+    on_notebook = (x < -0.008) & (np.abs(y) < 0.06) & result.observed
+    on_apart = (np.abs(x - 0.025) < 0.012) & (y > 0.032) & result.observed
+    open_table = (x > 0.053) & (np.abs(y) < 0.015) & result.observed  # the side away from the notebook
+    assert on_notebook.sum() >= 20 and on_apart.sum() >= 3 and open_table.sum() >= 10
+    assert np.mean(result.uncertain[on_notebook]) > 0.9 and result.train_mask[on_notebook].all()
+    assert np.all(result.occupancy[on_notebook] < 0.5)
+    assert np.median(result.noise_variance[on_notebook]) >= 0.5 * params.disagreement_variance_m2
+    for measured in (on_apart, open_table):
+        assert not result.uncertain[measured].any()
+        assert np.median(result.noise_variance[measured]) < 0.1 * params.disagreement_variance_m2
+
+
 def _cloth(shape: tuple[int, int], seed: int) -> np.ndarray:
     """The blue cloth of capture 000000080: brightness texture +-8 %, RGB noise of 3 units."""
     rng = np.random.default_rng(seed)

@@ -13,7 +13,7 @@ from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.evidence import Evidence, chromaticity_distance
 from gpis_grasp_ros.core.sensing.morphology import _filled
-from gpis_grasp_ros.core.sensing.objects import Objects, _Raster, minimum_width
+from gpis_grasp_ros.core.sensing.objects import Objects, _Raster, in_contact, minimum_width
 from gpis_grasp_ros.core.sensing.occlusion import Feet
 from gpis_grasp_ros.core.sensing.params import (
     CHROMA_CLEAR_FRACTION,
@@ -250,6 +250,7 @@ class Target(NamedTuple):
     p_c: np.ndarray  # (H, W) colour evidence, seen-through pixels 1
     body_height: float  # m, a clear body's prism height (0 = not a clear body)
     clear_target: bool  # the target is a clear body: its footprint is its prism's
+    contact_px: np.ndarray  # (H, W) bool, other objects' pixels in contact with it (:func:`~.objects.in_contact`)
 
 
 def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: Measurement, ev: Evidence,
@@ -292,4 +293,5 @@ def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: M
         # the target: they neither vote object in the cells they fall in nor stretch the grid
         target_px = target_px & ~feet.off_hull
         target_xy = foot_xy[target_px]
-    return Target(target_px, target_xy, occ, p_c, body_height, clear_target)
+    contact_px = in_contact(objects.raster, px_labels, foot_xy, target) & ~target_px
+    return Target(target_px, target_xy, occ, p_c, body_height, clear_target, contact_px)

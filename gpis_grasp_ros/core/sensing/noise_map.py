@@ -123,8 +123,10 @@ def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_h
                                         missing_px & ~target_px & ~off_hull, geometry.width
                                         ) > params.missing_cell_fraction
     uncertain |= foreign
-    trained_clear = behind | (body & params.train_clear_body)  # a clear body's prism, trained
-    unknown |= foreign | (_extended_regions(disagree) & ~trained_clear)
+    contact = np.zeros_like(missing) if cells.contact is None else cells.contact
+    # a clear body's prism and another object in contact: table or object by a prior or a split, trained
+    trained_prior = behind | (body & params.train_clear_body) | contact
+    unknown |= foreign | (_extended_regions(disagree) & ~trained_prior)
     noise = (cells.depth_var + params.disagreement_variance_m2 * disagreement
              + params.disagreement_variance_m2 * np.where(missing, 0.0, cells.miss_c))
     occ_bin = cells.occupancy >= 0.5

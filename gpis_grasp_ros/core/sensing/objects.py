@@ -423,6 +423,24 @@ def _check_target(target_px: np.ndarray, target_xy: np.ndarray, target_raster: n
                                  'evidence outside it is ignored')
 
 
+def in_contact(raster: _Raster, px_labels: np.ndarray, foot_xy: np.ndarray, target: int) -> np.ndarray:
+    """Pixels of the other objects in contact with the target: objects with a pixel whose foot falls in a raster
+    cell next to (8-neighbour of) or in a cell holding a target pixel's foot - no cell between them where a
+    table pixel could have been seen. The closed raster's labels are not used: closing bridges gaps of seen table.
+
+    Where two objects touch, the line between them is where a split (:func:`split_touching`, a flat support, a
+    height step) put it - an inference, not a measurement of free table. The target's grid counts such pixels
+    as table the sensor did not confirm (uncertain), not as table seen (:func:`~.rasterise.rasterise`)."""
+    ix, iy, ok = raster.cell(foot_xy)
+    mine = np.zeros(raster.labels.shape, np.uint8)
+    sel = ok & (px_labels == target)
+    mine[iy[sel], ix[sel]] = 1
+    near = cv2.dilate(mine, np.ones((3, 3), np.uint8)) > 0
+    others = ok & (px_labels > 0) & (px_labels != target)
+    touching = np.unique(px_labels[others][near[iy[others], ix[others]]])
+    return np.isin(px_labels, touching) if touching.size else np.zeros(px_labels.shape, dtype=bool)
+
+
 def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJECT_HEIGHT_PERCENTILE,
                   min_pixels: int = 10) -> float:
     """Height (m) of an object above the table: the ``percentile`` of the heights (m, along the table normal)

@@ -187,13 +187,15 @@ class Cells(NamedTuple):
     body: np.ndarray  # a clear body's prism cells
     behind: np.ndarray  # the table seen through a clear body
     body_alternatives: tuple[np.ndarray, ...] = ()  # its prism cells under the other plausible heights
+    contact: np.ndarray | None = None  # cells mostly another object in contact with the target (table not seen)
 
 
 def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fit: TableFit, meas: Measurement,
               p_d: np.ndarray, feet: Feet, footprint: float, intrinsics: CameraIntrinsics, params: SensingParams,
               frame_id: str) -> Cells:
     """Every pixel averaged into the cell under its foot, weighted by the table area its foot covers; other
-    objects' pixels count as table. Cells no pixel reaches take their centre's image pixel if it sees the table
+    objects' pixels count as table (uncertain where the object touches the target).
+    Cells no pixel reaches take their centre's image pixel if it sees the table
     there, else they are occluded; the part of a cell hidden behind an object counts as table."""
     valid, height, var_z, h_thr = frames.valid, meas.height, meas.var_z, fit.h_thr
     foot_xy, target_px, occ, p_c = feet.foot_xy, target.target_px, target.occ, target.p_c
@@ -217,17 +219,18 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
                                  np.isfinite(foot_xy[box]).all(axis=-1))
     wt = wt_box[vs - box[0].start, us - box[1].start]
     seen_in_depth = target_px & valid & (p_d > 0.5)
+    contact_px = target.contact_px.astype(np.float64)
     vp = valid_px[vs, us]
     sums = [np.bincount(cell, weights=wt * v, minlength=m * m)
             for v in (np.ones(vs.size), occ_t[vs, us], p_d[vs, us] * vp, p_c[vs, us] * vp, vp,
                       miss_t[vs, us].astype(np.float64), np.where(valid[vs, us], var_z[vs, us], 0.0),
-                      seen_in_depth[vs, us].astype(np.float64))]
-    n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_seen = (s.reshape(m, m) for s in sums)
+                      seen_in_depth[vs, us].astype(np.float64), contact_px[vs, us])]
+    n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_seen, s_contact = (s.reshape(m, m) for s in sums)
     depth_seen_cell = s_seen > 0.5 * np.maximum(n_inf, 1e-12)  # mostly the target seen in depth (before any fill)
 
     # cells between the feet of neighbouring pixels (a grid finer than the pixels' footprint on the
     # table): the mean of their observed 8-neighbours, if at least 3, for as many cells as a footprint spans
-    stats = [s_occ, s_pd, s_pc, s_valid, s_miss, s_var]
+    stats = [s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_contact]
     kernel3 = np.ones((3, 3), np.float32)
     hidden = _hidden_cells(geometry, intrinsics, foot_xy, height, valid & (np.nan_to_num(height) > h_thr),
                            max(1.5 * res, 2.0 * footprint))  # behind an object: not interpolated
@@ -265,6 +268,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
         s_pd[r2, c2], s_pc[r2, c2] = p_d[v2, u2] * valid_px[v2, u2], p_c[v2, u2] * valid_px[v2, u2]
         s_valid[r2, c2], s_miss[r2, c2] = valid_px[v2, u2], miss_t[v2, u2]
         s_var[r2, c2] = np.where(valid[v2, u2], var_z[v2, u2], 0.0)
+        s_contact[r2, c2] = contact_px[v2, u2]
     observed = n_inf > 0
     n_safe = np.maximum(n_inf, 1.0)
     # the part of a cell hidden behind an object is table, like a wholly occluded cell (_hidden_fraction)
@@ -280,6 +284,11 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
         rho_c = np.abs(s_pd - s_pc) / s_valid
         depth_var = np.where(s_valid > 0, s_var / s_valid, 0.0)
     disagreement = np.where(observed & (s_valid > 0), np.clip(np.nan_to_num(rho_c), 0.0, 1.0), 0.0)
+    # another object in contact: the line between them was inferred (a split), so the table the target's grid
+    # has there is a hypothesis, trained with the disagreement variance of the share it holds, never unknown
+    contact_frac = np.where(observed, np.clip(s_contact / n_safe, 0.0, 1.0), 0.0)
+    contact = contact_frac > params.uncertainty_threshold
+    disagreement = np.maximum(disagreement, contact_frac)
     body = behind = np.zeros((m, m), dtype=bool)
     alternatives: tuple[np.ndarray, ...] = ()
     if target.clear_target:
@@ -290,4 +299,4 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
             alternatives = prism_alternatives(geometry, target_px, fit.table, intrinsics, target.body_height,
                                               depth_seen_cell, observed, missing)
     return Cells(geometry, row, col, in_grid, informative, observed, occluded, occupancy, missing, miss_c,
-                 disagreement, depth_var, body, behind, alternatives)
+                 disagreement, depth_var, body, behind, alternatives, contact)
