@@ -185,7 +185,7 @@ def test_real_flower_box_is_split_from_the_notebook_it_touches():
     # often as the Monte-Carlo planner's, and neither says more than 0.95
     assert np.mean([e.successes for e in evs]) >= 5 and all(e.p_f < 0.95 for e in evs)
     gp_p = evaluate_seeds(FLOWER, TARGETS[FLOWER], range(3), trials=20, method='gp-p')
-    assert np.mean([e.successes for e in gp_p]) >= 6 and all(0.8 < e.p_f < 0.95 for e in gp_p)
+    assert np.mean([e.successes for e in gp_p]) >= 8 and all(0.8 < e.p_f < 0.95 for e in gp_p)
     # planned on its truth sampled at the planning grid, the grasp target is within reach (README: 19, 20, 20;
     # 19, 20, 20 on the previous ground truth too; 12, 7, 5 on the ground truth built from the halved mask, whose
     # stair-step normals made executions slip)

@@ -123,9 +123,8 @@ def noise_map(cells: Cells, missing_px: np.ndarray, target_px: np.ndarray, off_h
                                         missing_px & ~target_px & ~off_hull, geometry.width
                                         ) > params.missing_cell_fraction
     uncertain |= foreign
-    contact = np.zeros_like(missing) if cells.contact is None else cells.contact
     # a clear body's prism and another object in contact: table or object by a prior or a split, trained
-    trained_prior = behind | (body & params.train_clear_body) | contact
+    trained_prior = behind | (body & params.train_clear_body) | cells.contact
     unknown |= foreign | (_extended_regions(disagree) & ~trained_prior)
     noise = (cells.depth_var + params.disagreement_variance_m2 * disagreement
              + params.disagreement_variance_m2 * np.where(missing, 0.0, cells.miss_c))

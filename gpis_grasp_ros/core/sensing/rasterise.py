@@ -186,8 +186,8 @@ class Cells(NamedTuple):
     depth_var: np.ndarray  # m^2, mean averaged depth variance of the cell's valid pixels
     body: np.ndarray  # a clear body's prism cells
     behind: np.ndarray  # the table seen through a clear body
+    contact: np.ndarray  # cells mostly another object in contact with the target (table not seen)
     body_alternatives: tuple[np.ndarray, ...] = ()  # its prism cells under the other plausible heights
-    contact: np.ndarray | None = None  # cells mostly another object in contact with the target (table not seen)
 
 
 def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fit: TableFit, meas: Measurement,
@@ -299,4 +299,4 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
             alternatives = prism_alternatives(geometry, target_px, fit.table, intrinsics, target.body_height,
                                               depth_seen_cell, observed, missing)
     return Cells(geometry, row, col, in_grid, informative, observed, occluded, occupancy, missing, miss_c,
-                 disagreement, depth_var, body, behind, alternatives, contact)
+                 disagreement, depth_var, body, behind, contact, alternatives)
