@@ -47,7 +47,10 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     feet = place_feet(frames, fit, meas, missing_px, shadow_px, intrinsics, footprint)
     objects = isolate_target(fit, meas, ev, occ, missing_px, feet.foot_xy, footprint, intrinsics, params)
     target = grow_target(objects, frames, fit, meas, ev, occ, missing_px, feet, intrinsics, params)
-    cells = rasterise(target, missing_px, frames, fit, meas, ev.p_d, feet, footprint, intrinsics, params, frame_id)
+    # the grid is sized by the footprint of a pixel on the table under the target (a crop does not change it)
+    grid_footprint = pixel_footprint(feet.hit_points[..., 2], fit, intrinsics, target.target_px)
+    cells = rasterise(target, missing_px, frames, fit, meas, ev.p_d, feet, grid_footprint, intrinsics, params,
+                      frame_id)
     noise = noise_map(cells, missing_px, target.target_px, feet.off_hull, params)
 
     valid, target_px, colour = frames.valid, target.target_px, ev.colour

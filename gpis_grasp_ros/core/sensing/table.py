@@ -117,7 +117,16 @@ def target_support(inlier: np.ndarray, points: np.ndarray, table: TableFrame, ra
     return out
 
 
-def pixel_footprint(z_mean: np.ndarray, fit: TableFit, intrinsics: CameraIntrinsics) -> float:
-    """A pixel's extent on the table (m), at the inliers' median depth."""
-    return float(np.median(z_mean[fit.inlier])) / min(intrinsics.fx, intrinsics.fy) / max(
+def pixel_footprint(z_mean: np.ndarray, fit: TableFit, intrinsics: CameraIntrinsics,
+                    where: np.ndarray | None = None) -> float:
+    """A pixel's extent on the table (m), at the median depth of ``z_mean`` over ``where`` (default: the
+    table's inliers). On a tilted table it grows with the distance, so the footprint a grid is sized by is
+    taken where that grid lies (the table under the target), not over whatever part of the table the
+    image happens to show."""
+    sel = fit.inlier if where is None else where
+    z = z_mean[sel]
+    z = z[np.isfinite(z)]
+    if z.size == 0:
+        raise ValueError('no depth to measure a pixel footprint at')
+    return float(np.median(z)) / min(intrinsics.fx, intrinsics.fy) / max(
         math.cos(math.radians(fit.table.tilt_deg)), 0.3)

@@ -104,3 +104,36 @@ def test_without_a_target_point_the_colour_model_uses_the_whole_plane():
     frames = average_frames(rgb, depth, params)
     fit, _ = fit_table(frames, scene.intrinsics, params)
     assert np.array_equal(fit.support, fit.inlier)
+
+
+@pytest.mark.parametrize('y', [-0.25, 0.25])
+def test_the_grid_is_sized_by_the_pixel_footprint_under_the_target_whole_frame_or_cropped(y):
+    """At 45 degrees the table's pixel footprint changes by ~2x over the frame. A box off the image centre
+    (nearer the camera, or farther) gets cells of two pixel footprints *at the box*, the same in the whole
+    frame as in a crop around it; the median footprint over the whole table would be the wrong size."""
+    from gpis_grasp_ros.core.sensing import segment_frames
+    from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
+
+    scene = TiltedScene(45.0, focal_px=300.0, boxes=[Box(0.0, y, 0.03, 0.02, 0.03)])
+    rgb, depth, label = scene.frames(2, seed=3)
+    intr = scene.intrinsics
+    vv, uu = np.nonzero(label == 1)
+    target = (float(np.median(uu)), float(np.median(vv)))
+    u0, v0 = max(0, int(uu.min()) - 60), max(0, int(vv.min()) - 60)
+    u1, v1 = min(intr.width, int(uu.max()) + 60), min(intr.height, int(vv.max()) + 60)
+    params = SensingParams(target='pixel', target_point=target, cell_size_m=0.001, min_grid_cells=5)
+    whole = segment_frames(rgb, depth, intr, params)
+    crop_intr = CameraIntrinsics(intr.fx, intr.fy, intr.cx - u0, intr.cy - v0, u1 - u0, v1 - v0)
+    crop = segment_frames(rgb[:, v0:v1, u0:u1], depth[:, v0:v1, u0:u1], crop_intr,
+                          SensingParams(target='pixel', target_point=(target[0] - u0, target[1] - v0),
+                                        cell_size_m=0.001, min_grid_cells=5))
+    z_box = float(scene.to_camera(np.array([0.0, y]))[2])
+    expect = 2.0 * z_box / 300.0 / math.cos(math.radians(45.0))
+    frames = average_frames(rgb, depth, params)
+    fit, _ = fit_table(frames, intr, params)
+    median_table = 2.0 * pixel_footprint(frames.z_mean, fit, intr)
+    assert abs(median_table / expect - 1.0) > 0.15  # the whole frame's median footprint is not the box's
+    for r in (whole, crop):  # M = ceil(side / cell): the cell shrinks by up to one part in M
+        m = r.geometry.shape[0]
+        assert expect * (1.0 - 1.0 / m) * 0.97 <= r.geometry.resolution <= expect * 1.03
+    assert whole.geometry.resolution == pytest.approx(crop.geometry.resolution, rel=0.02)
