@@ -14,7 +14,7 @@ warm-up chain (which also loads the compiled kernels); the table gives median an
 The GPIS stage is timed cold (the multi-start search gpis_node runs on the first frame of a ``frame_id``) and
 warm, as gpis_node fits the next frame: "warm" chains pass the warm-up chain's fit as ``warm_start`` (an
 unchanged scene: the score test keeps it), "drifted" fits pass it with C x 1.5 and l x 0.85 (the test rejects
-it and L-BFGS-B searches from there; timed alone, not in a chain); ev = likelihood evaluations.
+it and the search runs from there; timed alone, not in a chain); ev = likelihood evaluations.
 
 The planning grid is the paper's M = 25 (the camera-rate targets are set there); ``--grid-size 0`` times
 segmentation_node's default, the 3 mm cell rule (M = 30-100 on the shipped bags).

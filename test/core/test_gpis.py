@@ -416,8 +416,8 @@ def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypa
     obs = _joint_draw(g, 4e-4, 0.02, -0.01, 1e-7, 1e-3, np.random.default_rng(4))
     real = gp.negative_log_marginal_likelihood
 
-    def failing_beyond(log_theta, *args):  # K + N "not positive definite" for l > 3 cm
-        if math.exp(log_theta[1]) > 0.03:
+    def failing_beyond(log_theta, *args):  # K + N "not positive definite" for l > 1.8 cm (the optimum: 2 cm)
+        if math.exp(log_theta[1]) > 0.018:
             raise np.linalg.LinAlgError('not positive definite')
         return real(log_theta, *args)
 
@@ -425,8 +425,9 @@ def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypa
     params = GpisParams(prior_mean=-0.01, length_scale_max_extent=1.0, n_restarts=4, seed=1)
     with caplog.at_level('WARNING', logger='gpis_grasp_ros.core.gpis'):
         fit = gp.fit_hyperparameters(g, obs, params)
-    assert fit.ok and fit.cholesky_failures > 0 and fit.length_scale <= 0.03
-    assert fit.failed_starts >= 1  # seed 1 draws random starts beyond 3 cm: they are reported, not used
+    assert fit.ok and fit.cholesky_failures > 0 and fit.length_scale <= 0.018
+    assert fit.n_starts == 5  # a failed factorisation: the random starts are searched too
+    assert fit.failed_starts >= 1  # seed 1 draws random starts beyond 1.8 cm: they are reported, not used
     assert any('not positive definite' in r.getMessage() for r in caplog.records)
     # every evaluation fails: the start values are kept, flagged and logged as an error
     caplog.clear()

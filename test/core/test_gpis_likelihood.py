@@ -153,7 +153,7 @@ def test_warm_start_keeps_an_undrifted_fit_and_re_searches_a_drifted_one():
         ff = fit_gpis(sdf, noise, mask, g, warm_start=far).hyperparameter_fit
         assert ff.warm_started and ff.length_scale <= fc.bounds[1][1] * (1 + 1e-9)
         fx = fit_gpis(sdf, noise, mask, g, warm_start=replace(fc, ok=False)).hyperparameter_fit
-        assert not fx.warm_started and fx.n_starts == 3
+        assert not fx.warm_started and fx.searched and fx.n_starts == 1  # cold: the data-driven start
     with pytest.raises(ValueError):
         GpisParams(warm_start_significance=0.0)
 
@@ -205,6 +205,7 @@ def test_cold_search_finds_the_previous_optimum_on_the_shipped_bags(bag):
     from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
     post, _ = posterior_from_scene(load_bag(path), SensingParams(grid_size=PAPER_GRID_SIZE))  # the pins' grid
     fit = post.hyperparameter_fit
-    assert fit.log_likelihood >= ll - 1e-6 * abs(ll)
-    assert fit.signal_variance == pytest.approx(c, rel=1e-4)
-    assert fit.length_scale == pytest.approx(ell, rel=1e-4)
+    # the scoring search stops when a step predicts less than 1e-3 nats (measured: within 0.004 nats of the pins)
+    assert fit.log_likelihood >= ll - 0.01
+    assert fit.signal_variance == pytest.approx(c, rel=0.02)
+    assert fit.length_scale == pytest.approx(ell, rel=0.02)

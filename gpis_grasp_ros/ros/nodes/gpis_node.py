@@ -10,7 +10,7 @@ and publishes latched ``gpis/model`` (GpisModel), ``gpis/mean`` and ``gpis/varia
 
 Warm start: the last fit of every ``frame_id`` (at most :data:`WARM_STARTS` frames) is the next fit's
 ``warm_start`` (docs/gpis-model.md, Warm start): its C and l are kept when the score test accepts them on the
-new frame, else L-BFGS-B searches from them alone. A change of any GPIS parameter forgets every stored fit, so
+new frame, else the search starts from them alone. A change of any GPIS parameter forgets every stored fit, so
 the next frame is searched cold. The log line and ``gpis/status`` say which: ``warm (kept ...)``,
 ``warm, re-searched ...``, ``cold search ...`` or ``fixed``.
 
