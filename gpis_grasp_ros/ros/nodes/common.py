@@ -151,6 +151,7 @@ class NodeExecutor(MultiThreadedExecutor):
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
         self.stop_defaults()
+        self.defaults.shutdown(timeout_sec)
         return super().shutdown(timeout_sec)
 
 
@@ -355,6 +356,10 @@ def run_node(node_class: type[GuardedNode], args: list[str] | None = None) -> in
                 _answer_in_flight(executor, node)
                 executor.stop_defaults()
             node.destroy_node()
+        if executor is not None:
+            # release the executors' guard conditions while rclpy is intact: left to the garbage collector at
+            # interpreter exit, their __del__ runs after rclpy's modules are torn down and prints a traceback
+            executor.shutdown(timeout_sec=SHUTDOWN_GRACE)
         rclpy.try_shutdown()
     return status
 
