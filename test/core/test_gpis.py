@@ -410,6 +410,21 @@ def test_thickness_bound_keeps_a_one_cell_wide_object():
     assert hi == pytest.approx(max(g.size_m) / 6)
 
 
+def test_a_singular_fisher_information_stops_the_search_with_a_warning(caplog, monkeypatch):
+    """No scoring direction: the search keeps the (C-stepped) start, says so, and it is still a likelihood fit."""
+    m = 12
+    g = GridGeometry(0.0, 0.0, 0.01, m, m)
+    obs = _joint_draw(g, 4e-4, 0.02, -0.01, 1e-7, 1e-3, np.random.default_rng(4))
+    params = GpisParams(prior_mean=-0.01, length_scale_max_extent=1.0)
+    good = gp.fit_hyperparameters(g, obs, params)
+    monkeypatch.setattr(hyperparameters, 'fisher_information', lambda *a: np.zeros((2, 2)))
+    with caplog.at_level('WARNING', logger='gpis_grasp_ros.core.gpis'):
+        fit = gp.fit_hyperparameters(g, obs, params)
+    assert fit.ok and fit.cholesky_failures == 0 and fit.n_starts == 1
+    assert fit.n_evaluations < good.n_evaluations and fit.log_likelihood < good.log_likelihood
+    assert any('singular Fisher information' in r.getMessage() for r in caplog.records)
+
+
 def test_cholesky_failures_in_the_search_are_flagged_and_logged(caplog, monkeypatch):
     m = 12
     g = GridGeometry(0.0, 0.0, 0.01, m, m)

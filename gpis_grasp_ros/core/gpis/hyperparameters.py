@@ -243,8 +243,9 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                     d[blocked] = np.clip(x[blocked] + d[blocked], lo[blocked], hi[blocked]) - x[blocked]
                     d[rest] = -np.linalg.solve(info[np.ix_(rest, rest)],
                                                g[rest] + info[np.ix_(rest, blocked)] @ d[blocked])
-            except np.linalg.LinAlgError:  # singular information: no Newton direction, keep x (counted)
-                failures[0] += 1
+            except np.linalg.LinAlgError:  # singular information: no scoring direction from x (surfaced)
+                logger.warning('hyperparameter search: singular Fisher information at C = %.3g m^2, l = %.3g m; '
+                               'the search stops there', math.exp(x[0]), math.exp(x[1]))
                 break
             t, moved = 1.0, False
             while evaluations[0] - first < _SCORING_EVALUATIONS and t > 1e-3:
