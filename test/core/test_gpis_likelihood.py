@@ -205,7 +205,8 @@ def test_cold_search_finds_the_previous_optimum_on_the_shipped_bags(bag):
     from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
     post, _ = posterior_from_scene(load_bag(path), SensingParams(grid_size=PAPER_GRID_SIZE))  # the pins' grid
     fit = post.hyperparameter_fit
-    # the scoring search stops when a step predicts less than 1e-3 nats (measured: within 0.004 nats of the pins)
-    assert fit.log_likelihood >= ll - 0.01
-    assert fit.signal_variance == pytest.approx(c, rel=0.02)
-    assert fit.length_scale == pytest.approx(ell, rel=0.02)
+    # the scoring search stops when a step predicts less than 1e-3 nats (measured on these pins: within 0.001
+    # nats, C within 0.9 %, l within 0.2 %)
+    assert fit.log_likelihood >= ll - 0.003
+    assert fit.signal_variance == pytest.approx(c, rel=0.015)
+    assert fit.length_scale == pytest.approx(ell, rel=0.005)

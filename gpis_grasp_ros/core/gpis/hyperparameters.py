@@ -141,6 +141,13 @@ def fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpis
         return _fit_hyperparameters(geometry, obs, params, eligible, inscribed_radius_m, warm_start)
 
 
+def _free_coordinates(x: np.ndarray, grad: np.ndarray, log_bounds: list[tuple[float, float]]) -> list[int]:
+    """The coordinates free to move: not on a bound with the gradient pointing out of the box (there the
+    Karush-Kuhn-Tucker condition holds)."""
+    return [i for i, (lo, hi) in enumerate(log_bounds)
+            if not ((x[i] <= lo + 1e-9 and grad[i] > 0) or (x[i] >= hi - 1e-9 and grad[i] < 0))]
+
+
 def _drift_statistic(x: np.ndarray, grad: np.ndarray, log_bounds: list[tuple[float, float]],
                      workspace: _LikelihoodWorkspace, noise: np.ndarray) -> tuple[float, int]:
     """Score statistic g_F^T I_FF^-1 g_F at ``x`` and its degrees of freedom |F|.
@@ -151,11 +158,7 @@ def _drift_statistic(x: np.ndarray, grad: np.ndarray, log_bounds: list[tuple[flo
     chi^2 with |F| degrees of freedom; it is also twice the likelihood gain a Fisher-scoring step
     predicts.
     """
-    free = []
-    for i, (lo, hi) in enumerate(log_bounds):
-        blocked = (x[i] <= lo + 1e-9 and grad[i] > 0) or (x[i] >= hi - 1e-9 and grad[i] < 0)
-        if not blocked:
-            free.append(i)
+    free = _free_coordinates(x, grad, log_bounds)
     if not free:
         return 0.0, 0
     info = fisher_information(workspace, noise)[np.ix_(free, free)]
@@ -187,7 +190,9 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
     last: list = [None, None]  # (x, (f, g)) of the last evaluation: the workspace holds it
 
     def objective(x: np.ndarray) -> tuple[float, np.ndarray]:
-        if last[0] is not None and np.array_equal(x, last[0]):  # L-BFGS-B re-evaluates its start
+        # evaluated unless x is the last point evaluated, so afterwards the workspace (the Fisher information
+        # and the C step read it) is at x; L-BFGS-B re-evaluates its start
+        if last[0] is not None and np.array_equal(x, last[0]):
             return last[1][0], last[1][1].copy()
         evaluations[0] += 1
         try:
@@ -197,11 +202,6 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
             out = (_WALL, np.zeros(2))
         last[:] = [np.array(x, dtype=np.float64), out]
         return out[0], out[1].copy()
-
-    def at(x: np.ndarray) -> tuple[float, np.ndarray]:  # the workspace at x (re-evaluated if it moved on)
-        if last[0] is None or not np.array_equal(x, last[0]):
-            last[0] = None
-        return objective(x)
 
     def profiled(x: np.ndarray, f: float) -> tuple[np.ndarray, float]:
         # C steps to the closed-form optimum given l (profile_signal_variance) from an evaluated start
@@ -224,8 +224,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
         _SCORING_GAIN nats, after _SCORING_EVALUATIONS evaluations, or in a found optimum's basin."""
         first = evaluations[0]
         while evaluations[0] - first < _SCORING_EVALUATIONS:
-            free = [i for i in range(2)
-                    if not ((x[i] <= lo[i] + 1e-9 and g[i] > 0) or (x[i] >= hi[i] - 1e-9 and g[i] < 0))]
+            free = _free_coordinates(x, g, log_bounds)
             if not free:
                 break
             d = np.zeros(2)
@@ -265,7 +264,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                             if fz < f:
                                 x, f, g = z, fz, gz
                             else:
-                                f, g = at(x)  # the Fisher information is read at x
+                                f, g = objective(x)  # the Fisher information is read at x
                     break
                 t *= 0.5
             if not moved or any(np.max(np.abs(x - o)) < _BASIN for o in optima):
@@ -301,7 +300,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
         x0 = queue.pop(0)
         n_starts += 1
         before = failures[0]
-        f0, g0 = (f_prev, g_prev) if (warm and n_starts == 1) else objective(x0)
+        f0, g0 = objective(x0)  # the warm start: the evaluation the score test used
         if failures[0] > before and f0 >= _WALL:
             failed_starts += 1
         else:
@@ -309,7 +308,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
             if reference:
                 x, fun = lbfgs(x0, f0)
             else:
-                f0, g0 = at(x0)  # the Fisher information is read at x0
+                f0, g0 = objective(x0)  # the Fisher information is read at x0 (after a rejected C step)
                 x, fun = scoring(x0, f0, g0)
             optima.append(np.array(x))
             if fun < best_f:
