@@ -148,9 +148,12 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
     precision[np.diag_indices_from(precision)] += 1.0
     chol_p = np.linalg.cholesky(precision)  # P >= I: always positive definite, no jitter needed
 
-    # cross-covariance columns of the grid values with every observation: cov(f(x*), L_i f) / C
-    kx_star = _se_1d(xs, obs.xy[:, 0], ell, 0, obs.px)  # (W, N)
-    ky_star = _se_1d(ys, obs.xy[:, 1], ell, 0, obs.py)  # (H, N)
+    # cross-covariance columns of the grid values with every observation: cov(f(x*), L_i f) / C (off the grid;
+    # on it the mean and gradient take the separable route of _mean_on_grid)
+    kx_star = ky_star = None
+    if not on_grid:
+        kx_star = _se_1d(xs, obs.xy[:, 0], ell, 0, obs.px)  # (W, N)
+        ky_star = _se_1d(ys, obs.xy[:, 1], ell, 0, obs.py)  # (H, N)
     variance = None
     if on_grid or not exact:
         # representer weights from the weight-space posterior mean (Woodbury, R&W eq. A.9):
@@ -180,11 +183,14 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
     if variance is None:
         variance = np.einsum('ij,ij->i', cov_factor, cov_factor)
 
-    # eq. 1 and its gradient: separable products (H x N)(N x W) of the kernel and its derivatives
-    weighted = ky_star * (c * alpha)[None, :]  # (H, N)
-    mean = m + weighted @ kx_star.T
-    grad_x = weighted @ _se_1d(xs, obs.xy[:, 0], ell, 1, obs.px).T
-    grad_y = (_se_1d(ys, obs.xy[:, 1], ell, 1, obs.py) * (c * alpha)[None, :]) @ kx_star.T
+    # eq. 1 and its gradient: separable products of the kernel and its derivatives
+    if on_grid:
+        mean, grad_x, grad_y = _mean_on_grid(xs, ys, ell, m, c * alpha, rows, cols, sel)
+    else:  # (H x N)(N x W)
+        weighted = ky_star * (c * alpha)[None, :]  # (H, N)
+        mean = m + weighted @ kx_star.T
+        grad_x = weighted @ _se_1d(xs, obs.xy[:, 0], ell, 1, obs.px).T
+        grad_y = (_se_1d(ys, obs.xy[:, 1], ell, 1, obs.py) * (c * alpha)[None, :]) @ kx_star.T
     nv = obs.n_values
     return GpisPosterior(
         geometry=geometry, mean=mean, variance=np.clip(variance.reshape(h, w), 0.0, None),
@@ -194,6 +200,31 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
         rank=basis.rank, truncation=basis.truncation, log_marginal_likelihood=lml,
         train_grad_xy=obs.xy[nv:], train_grad_axis=(obs.kind[nv:] == GRAD_Y).astype(np.int64),
         train_grad=obs.y[nv:], train_grad_noise=obs.noise[nv:], hyperparameter_fit=fit)
+
+
+def _mean_on_grid(xs: np.ndarray, ys: np.ndarray, ell: float, m: float, weights: np.ndarray, rows: np.ndarray,
+                  cols: np.ndarray, sel: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Posterior mean (eq. 1) and its x / y gradient on the grid for observations on cell centres.
+
+    With every observation at a cell centre its cross-covariance column is a column of the (H, H) and
+    (W, W) kernel matrices between the grid's axes, so sum_i w_i ky_i kx_i^T = sum_k Ty_k S_k Tx_k^T with
+    S_k the weights w = C alpha of observation type k summed into their cells: O(H W (H + W)) per type
+    instead of O(H W N) and the (H, N), (W, N) cross-covariances.
+    """
+    h, w = ys.size, xs.size
+    mean = np.full((h, w), m)
+    grad_x = np.zeros((h, w))
+    grad_y = np.zeros((h, w))
+    for kind, s in sel.items():
+        qx, qy = int(kind == GRAD_X), int(kind == GRAD_Y)  # the observation's derivative orders
+        scattered = np.zeros((h, w))
+        np.add.at(scattered, (rows[s], cols[s]), weights[s])
+        ty, tx = _se_1d(ys, ys, ell, 0, qy), _se_1d(xs, xs, ell, 0, qx)
+        ty_s = ty @ scattered  # (H, W)
+        mean += ty_s @ tx.T
+        grad_x += ty_s @ _se_1d(xs, xs, ell, 1, qx).T
+        grad_y += (_se_1d(ys, ys, ell, 1, qy) @ scattered) @ tx.T
+    return mean, grad_x, grad_y
 
 
 def _exact_variance(chol_lower: np.ndarray, c: float, kx_star: np.ndarray, ky_star: np.ndarray,
