@@ -109,6 +109,8 @@ class Soak:
         self.procs: dict[str, subprocess.Popen] = {}
         self.logs: dict[str, Path] = {}
         self.figures: dict[str, Any] = {}
+        #: (node, stopped, started again) wall-clock times of every node the soak restarted
+        self.restarts: list[tuple[str, float, float]] = []
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain)
         self.node = rclpy.create_node('soak', context=self.context)
@@ -437,6 +439,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="matrix clients: plain rclpy calls (default: every answer must arrive as sent) or "
                         "GraspPlannerClient's asking again")
     p.add_argument('--models', type=int, default=10000, help='GPIS models streamed into planner_node (default 10000)')
+    p.add_argument('--model-rate', type=float, default=100.0,
+                   help='models published per second (default 100; planner_node takes the newest when busy)')
     p.add_argument('--json', default=None, help='also write the figures to this JSON file')
     p.add_argument('--keep-logs', action='store_true', help='keep the node logs (their folder is printed)')
     return p
@@ -483,10 +487,11 @@ def main(argv: list[str] | None = None) -> int:
         if 'matrix' in phases:
             soak_load.matrix(soak, soak.last_model, retry=args.matrix_client == 'ask-again')
         if 'models' in phases:
-            soak_load.model_stream(soak, soak.last_model, args.models)
+            soak_load.model_stream(soak, soak.last_model, args.models, rate_hz=args.model_rate,
+                                   sample_every=max(1, min(100, args.models // 40)))
         if 'timeout' in phases:
             soak.timeouts()
-        soak.figures['parameter_latency'] = pinger.stop()
+        soak.figures['parameter_latency'] = pinger.stop(soak.restarts)
         soak.figures['health'] = {
             'node_deaths_before_shutdown': sum(p.poll() is not None for p in soak.procs.values()),
             'guard_exceptions': soak.log_count(r'unexpected \w+'),

@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -36,6 +37,8 @@ MATRIX_SHAPE_SAMPLES = 10
 MATRIX_ROUNDS = ((1, 100, 'burst'), (5, 40, 'burst'), (10, 100, 'burst'), (10, 10, 'loop'))
 MATRIX_WORKERS = (1, 2, 4)
 MATRIX_QUEUES = (32, 128, 1024)
+#: How long the pinger waits for a parameter answer before it counts the call as unanswered (s).
+PING_WAIT_S = 5.0
 
 
 def rss_mb(pid: int, field: str = 'VmRSS') -> float:
@@ -61,6 +64,18 @@ def slope_per_1000(xs: list[float], ys: list[float]) -> float:
     if len(xs) < 3:
         return float('nan')
     return float(np.polyfit(np.asarray(xs, float), np.asarray(ys, float), 1)[0] * 1000)
+
+
+def slope_with_error_per_1000(xs: list[float], ys: list[float], blocks: int = 8) -> tuple[float, float]:
+    """Slope of ``ys`` over ``xs`` per 1000 units of x, and its standard error from the means of ``blocks``
+    consecutive blocks (RSS samples are a sawtooth, not independent: the block means are closer to it)."""
+    n = len(xs) // blocks
+    if n < 1:
+        return float('nan'), float('nan')
+    bx = np.asarray(xs[:n * blocks], float).reshape(blocks, n).mean(axis=1)
+    by = np.asarray(ys[:n * blocks], float).reshape(blocks, n).mean(axis=1)
+    (slope, icpt), cov = np.polyfit(bx, by, 1, cov=True)
+    return float(slope * 1000), float(np.sqrt(cov[0, 0]) * 1000)
 
 
 def _pct(values: list[float], q: float) -> float:
@@ -140,7 +155,10 @@ def run_pinger(nodes: dict[str, str], duration: float, period: float = 0.05) -> 
 
     from gpis_grasp_ros.ros.nodes.common import SERVICE_QOS
 
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGINT: KeyboardInterrupt, the figures
+    # SIGINT ends the pinger with its figures: KeyboardInterrupt, even when the soak was started with SIGINT
+    # ignored (a background job of a shell), which its children would inherit
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(f'soak_pinger_{os.getpid()}')
     clients = {name: (node.create_client(GetParameters, f'/{name}/get_parameters', qos_profile=SERVICE_QOS), param)
                for name, param in nodes.items()}  # the deep history every plain client needs (docs/reliability.md)
@@ -148,7 +166,7 @@ def run_pinger(nodes: dict[str, str], duration: float, period: float = 0.05) -> 
     executor.add_node(node)
     threading.Thread(target=executor.spin, daemon=True).start()
     latencies: dict[str, list[float]] = {name: [] for name in nodes}
-    unanswered = dict.fromkeys(nodes, 0)
+    unanswered: dict[str, list[float]] = {name: [] for name in nodes}
     end = time.monotonic() + duration
     try:
         _ping(clients, latencies, unanswered, end, period)
@@ -164,22 +182,39 @@ def _ping(clients: dict, latencies: dict, unanswered: dict, end: float, period: 
             if not cli.service_is_ready():
                 continue
             done = threading.Event()
-            start = time.monotonic()
+            start, sent_at = time.monotonic(), time.time()
             future = cli.call_async(GetParameters.Request(names=[param]))
             future.add_done_callback(lambda _f, d=done: d.set())
-            if done.wait(5.0):
+            if done.wait(PING_WAIT_S):
                 latencies[name].append(time.monotonic() - start)
             else:
-                unanswered[name] += 1
+                unanswered[name].append(sent_at)
                 cli.remove_pending_request(future)
             time.sleep(period)
 
 
-def latency_table(latencies: dict[str, list[float]], unanswered: dict[str, int]) -> dict[str, Any]:
-    """Per node: calls, unanswered, p50/p99/max (ms)."""
-    return {name: {'calls': len(v), 'unanswered': unanswered[name], 'p50_ms': 1000 * _pct(v, 50),
-                   'p99_ms': 1000 * _pct(v, 99), 'max_ms': 1000 * max(v) if v else float('nan')}
+def latency_table(latencies: dict[str, list[float]], unanswered: dict[str, list[float]]) -> dict[str, Any]:
+    """Per node: calls, unanswered (and the wall-clock times they were sent), p50/p99/max (ms)."""
+    return {name: {'calls': len(v), 'unanswered': len(unanswered[name]), 'unanswered_sent_at': unanswered[name],
+                   'p50_ms': 1000 * _pct(v, 50), 'p99_ms': 1000 * _pct(v, 99),
+                   'max_ms': 1000 * max(v) if v else float('nan')}
             for name, v in latencies.items()}
+
+
+def split_by_restarts(table: dict[str, Any], restarts: list[tuple[str, float, float]],
+                      wait_s: float = PING_WAIT_S) -> dict[str, Any]:
+    """Splits each node's unanswered calls into those sent to a node the soak was restarting (sent at most
+    ``wait_s`` before it was stopped and before its replacement had started: a stopped process answers
+    nothing) and the rest, which are the ones that count."""
+    for name, row in table.items():
+        if not isinstance(row, dict) or 'unanswered_sent_at' not in row:
+            continue
+        windows = [(stop - wait_s, up) for node, stop, up in restarts if node == name]
+        sent = row.pop('unanswered_sent_at')
+        during = sum(any(a <= t <= b for a, b in windows) for t in sent)
+        row['unanswered_during_restart'] = during
+        row['unanswered'] = len(sent) - during
+    return table
 
 
 # --------------------------------------------------------------------------- the soak side
@@ -196,22 +231,25 @@ class ParameterPinger:
     def start(self) -> None:
         self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=subprocess.PIPE, text=True)
 
-    def stop(self) -> dict[str, Any]:
-        """Ends the pinger (SIGINT) and returns its table."""
-        import signal
+    def stop(self, restarts: list[tuple[str, float, float]] = ()) -> dict[str, Any]:
+        """Ends the pinger (SIGINT) and returns its table; ``restarts`` (node, stopped, started again; wall
+        clock) separate the calls a restarted node could not answer."""
         self.proc.send_signal(signal.SIGINT)
+        out = ''
         try:
             out, _ = self.proc.communicate(timeout=30)
-            return json.loads(out.strip().splitlines()[-1])
-        except (subprocess.TimeoutExpired, ValueError, IndexError):
+            return split_by_restarts(json.loads(out.strip().splitlines()[-1]), list(restarts))
+        except (subprocess.TimeoutExpired, ValueError, IndexError) as e:
             self.proc.kill()
-            return {'error': 'the pinger process gave no figures'}
+            return {'error': f'the pinger process gave no figures ({type(e).__name__}: {e}; '
+                             f'exit code {self.proc.poll()}; its output ended {out[-300:]!r})'}
 
 
 def _restart_planner(soak: Any, workers: int) -> None:
     """planner_node again with ``workers`` planning threads (read-only) and the matrix's cheap S."""
     from gpis_grasp_ros.tools.soak import NODES, start_node
     proc = soak.procs.get('planner_node')
+    stopped = time.time()
     if proc is not None and proc.poll() is None:
         proc.terminate()
         proc.wait(timeout=20)
@@ -221,6 +259,7 @@ def _restart_planner(soak: Any, workers: int) -> None:
     extra += ['-p', f'workers:={workers}', '-p', f'num_shape_samples:={MATRIX_SHAPE_SAMPLES}',
               '-p', f'max_queue:={MATRIX_QUEUES[0]}']
     start_node(soak, 'planner_node', extra, suffix=f'_w{workers}')
+    soak.restarts.append(('planner_node', stopped, time.time()))
 
 
 def _wait_planner_model(soak: Any, timeout: float = 60.0) -> bool:
@@ -282,9 +321,11 @@ def matrix(soak: Any, model: Any, retry: bool, rounds=MATRIX_ROUNDS, workers_val
                     totals[k] += cell[k]
     soak.node.destroy_publisher(pub)
     from gpis_grasp_ros.tools.soak import NODES, start_node
+    stopped = time.time()
     soak.procs['planner_node'].terminate()
     soak.procs['planner_node'].wait(timeout=20)
     start_node(soak, 'planner_node', NODES['planner_node'], suffix='_after_matrix')  # the soak's settings again
+    soak.restarts.append(('planner_node', stopped, time.time()))
     soak.figures['matrix'] = {
         'cells': len(cells), 'client_api': 'ask again (client.py)' if retry else 'plain rclpy call_async',
         **{f'requests_{k}': v for k, v in totals.items()},
@@ -301,9 +342,17 @@ def matrix(soak: Any, model: Any, retry: bool, rounds=MATRIX_ROUNDS, workers_val
                                     f"{c['refused']} refused" for c in cells}
 
 
-def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_hz: float = 100.0) -> None:
-    """``count`` models (each a new message with its own stamp and slightly different targets) into
-    planner_node, a plan every ``plan_every``; RSS sampled every 100 models."""
+def _quarter_median(ys: list[float], q: int) -> float:
+    n = len(ys) // 4
+    return float(np.median(ys[q * n:(q + 1) * n])) if n else float('nan')
+
+
+def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_hz: float = 100.0,
+                 sample_every: int = 100) -> None:
+    """``count`` models (each a new message with its own stamp and slightly different targets) published
+    into planner_node at ``rate_hz`` (it takes the newest when busy), a plan every ``plan_every``; RSS and
+    the models taken so far sampled every ``sample_every`` published. The slope after warm-up (the second
+    half) is per 1000 models taken, with its standard error over block means."""
     import copy
 
     from gpis_grasp_interfaces.msg import GpisModel
@@ -315,7 +364,7 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
     rng = np.random.default_rng(0)
     base_y = np.asarray(model.train_y, dtype=np.float64)
     received_before = soak.log_count(r'GPIS received', ['planner_node'])
-    xs, ys, plans_ok, plans = [], [], 0, 0
+    xs, ys, taken, plans_ok, plans = [], [], [], 0, 0
     started = time.monotonic()
     for k in range(count):
         m = copy.copy(model)
@@ -329,18 +378,22 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
                                                       seed=k + 1), 60)
             plans += 1
             plans_ok += int(res is not None and res.success)
-        if k % 100 == 99:
+        if k % sample_every == sample_every - 1:
             xs.append(k + 1)
+            taken.append(soak.log_count(r'GPIS received', ['planner_node']) - received_before)
             ys.append(rss_mb(pid))
     time.sleep(2.0)
     received = soak.log_count(r'GPIS received', ['planner_node']) - received_before
     half = len(xs) // 2
+    slope, slope_se = slope_with_error_per_1000(taken[half:], ys[half:])
     soak.node.destroy_publisher(pub)
     soak.figures['models'] = {
         'published': count, 'taken_by_planner': received, 'plans': plans, 'plans_ok': plans_ok,
         'rss_first_mb': ys[0] if ys else float('nan'), 'rss_last_mb': ys[-1] if ys else float('nan'),
         'rss_max_mb': max(ys) if ys else float('nan'), 'threads_at_end': threads(pid),
         'rss_slope_after_warmup_mb_per_1000_models': slope_per_1000(xs[half:], ys[half:]),
+        'rss_slope_after_warmup_mb_per_1000_taken': slope, 'rss_slope_after_warmup_standard_error': slope_se,
+        'rss_median_second_quarter_mb': _quarter_median(ys, 1), 'rss_median_last_quarter_mb': _quarter_median(ys, 3),
         'wall_clock_s': time.monotonic() - started,
     }
 
