@@ -365,6 +365,7 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
     base_y = np.asarray(model.train_y, dtype=np.float64)
     received_before = soak.log_count(r'GPIS received', ['planner_node'])
     xs, ys, taken, plans_ok, plans = [], [], [], 0, 0
+    failures: dict[str, int] = {}
     started = time.monotonic()
     for k in range(count):
         m = copy.copy(model)
@@ -378,6 +379,9 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
                                                       seed=k + 1), 60)
             plans += 1
             plans_ok += int(res is not None and res.success)
+            if res is None or not res.success:
+                reason = 'not answered within 60 s' if res is None else (res.message or 'no reason')[:60]
+                failures[reason] = failures.get(reason, 0) + 1
         if k % sample_every == sample_every - 1:
             xs.append(k + 1)
             taken.append(soak.log_count(r'GPIS received', ['planner_node']) - received_before)
@@ -389,6 +393,7 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
     soak.node.destroy_publisher(pub)
     soak.figures['models'] = {
         'published': count, 'taken_by_planner': received, 'plans': plans, 'plans_ok': plans_ok,
+        'plan_failures': failures,
         'rss_first_mb': ys[0] if ys else float('nan'), 'rss_last_mb': ys[-1] if ys else float('nan'),
         'rss_max_mb': max(ys) if ys else float('nan'), 'threads_at_end': threads(pid),
         'rss_slope_after_warmup_mb_per_1000_models': slope_per_1000(xs[half:], ys[half:]),
