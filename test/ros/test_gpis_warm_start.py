@@ -75,7 +75,7 @@ def test_second_frame_is_warm_and_matches_a_cold_fit_a_parameter_change_forces_a
         # the warm fit of the second frame is the cold fit's posterior: on A the score test rejects the first
         # frame's values (l on its bound) and the local search returns to the cold optimum
         ref_fit = cold_ref.hyperparameter_fit
-        assert warm.log_likelihood >= ref_fit.log_likelihood - 1e-6
+        assert warm.log_likelihood >= ref_fit.log_likelihood - 1e-3  # the search's stopping gain (nats)
         np.testing.assert_allclose([warm.signal_variance, warm.length_scale],  # the search stops within 1e-3 nats
                                    [ref_fit.signal_variance, ref_fit.length_scale], rtol=0.02)
         mean = np.asarray(msg.mean).reshape(cold_ref.mean.shape)

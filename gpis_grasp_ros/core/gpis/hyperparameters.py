@@ -178,6 +178,19 @@ def _search_setup(geometry: GridGeometry, obs: _Observations, params: GpisParams
     return sub, _LikelihoodWorkspace(sub), resid, sub.noise + params.jitter, bounds
 
 
+def _secant_corrected(info: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    """The curvature model after a step s that changed the gradient by y: the BFGS update of ``info``, so that
+    it has the likelihood's curvature along s (where the GP is not the data's model the Fisher information is
+    not the curvature, and full scoring steps overshoot or fall short by a constant factor). None when s^T y is
+    not positive (no curvature information; the Fisher information is read afresh)."""
+    sy = float(s @ y)
+    bs = info @ s
+    sbs = float(s @ bs)
+    if not (sy > 1e-12 * float(np.linalg.norm(s) * np.linalg.norm(y)) and sbs > 0.0):
+        return None
+    return info - np.outer(bs, bs) / sbs + np.outer(y, y) / sy
+
+
 def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: GpisParams,
                          eligible: np.ndarray | None, inscribed_radius_m: float | None,
                          warm_start: HyperparameterFit | None = None, reference: bool = False) -> HyperparameterFit:
@@ -220,16 +233,20 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
 
     def scoring(x: np.ndarray, f: float, g: np.ndarray) -> tuple[np.ndarray, float]:
         """Fisher scoring from an evaluated x: d = -I^-1 g over the coordinates free to move, projected into the
-        bounds and halved until the likelihood rises; stops when the predicted gain g^T I^-1 g / 2 is below
+        bounds and halved until the likelihood rises, I corrected after each step by the step's gradient change
+        (:func:`_secant_corrected`); stops when the predicted gain g^T I^-1 g / 2 is below
         _SCORING_GAIN nats, after _SCORING_EVALUATIONS evaluations, or in a found optimum's basin."""
         first = evaluations[0]
+        info, x_last, g_last = None, None, None
         while evaluations[0] - first < _SCORING_EVALUATIONS:
             free = _free_coordinates(x, g, log_bounds)
             if not free:
                 break
             d = np.zeros(2)
             try:
-                info = fisher_information(workspace, noise)
+                info = _secant_corrected(info, x - x_last, g - g_last) if info is not None else None
+                if info is None:
+                    info = fisher_information(workspace, noise)
                 d[free] = -np.linalg.solve(info[np.ix_(free, free)], g[free])
                 if -float(g[free] @ d[free]) < 2.0 * _SCORING_GAIN:
                     break
@@ -246,7 +263,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                 logger.warning('hyperparameter search: singular Fisher information at C = %.3g m^2, l = %.3g m; '
                                'the search stops there', math.exp(x[0]), math.exp(x[1]))
                 break
-            t, moved = 1.0, False
+            t, moved, x_last, g_last = 1.0, False, x, g
             while evaluations[0] - first < _SCORING_EVALUATIONS and t > 1e-3:
                 y = np.clip(x + t * d, lo, hi)
                 fy, gy = objective(y)
