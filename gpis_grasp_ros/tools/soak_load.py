@@ -245,21 +245,28 @@ class ParameterPinger:
                              f'exit code {self.proc.poll()}; its output ended {out[-300:]!r})'}
 
 
-def _restart_planner(soak: Any, workers: int) -> None:
-    """planner_node again with ``workers`` planning threads (read-only) and the matrix's cheap S."""
-    from gpis_grasp_ros.tools.soak import NODES, start_node
-    proc = soak.procs.get('planner_node')
+def _restart_node(soak: Any, name: str, extra: list[str], suffix: str) -> None:
+    """Node ``name`` stopped (if running) and started again with ``extra``; the restart's wall-clock window goes
+    to ``soak.restarts`` (the parameter pinger's calls into it have no server to answer them)."""
+    from gpis_grasp_ros.tools.soak import start_node
+    proc = soak.procs.get(name)
     stopped = time.time()
     if proc is not None and proc.poll() is None:
         proc.terminate()
         proc.wait(timeout=20)
+    start_node(soak, name, extra, suffix=suffix)
+    soak.restarts.append((name, stopped, time.time()))
+
+
+def _restart_planner(soak: Any, workers: int) -> None:
+    """planner_node again with ``workers`` planning threads (read-only) and the matrix's cheap S."""
+    from gpis_grasp_ros.tools.soak import NODES
     args = NODES['planner_node']
     extra = [x for flag, value in zip(args[::2], args[1::2], strict=True)
              if not value.startswith(('max_queue', 'workers')) for x in (flag, value)]
     extra += ['-p', f'workers:={workers}', '-p', f'num_shape_samples:={MATRIX_SHAPE_SAMPLES}',
               '-p', f'max_queue:={MATRIX_QUEUES[0]}']
-    start_node(soak, 'planner_node', extra, suffix=f'_w{workers}')
-    soak.restarts.append(('planner_node', stopped, time.time()))
+    _restart_node(soak, 'planner_node', extra, f'_w{workers}')
 
 
 def _wait_planner_model(soak: Any, timeout: float = 60.0) -> bool:
@@ -320,12 +327,8 @@ def matrix(soak: Any, model: Any, retry: bool, rounds=MATRIX_ROUNDS, workers_val
                 for k in totals:
                     totals[k] += cell[k]
     soak.node.destroy_publisher(pub)
-    from gpis_grasp_ros.tools.soak import NODES, start_node
-    stopped = time.time()
-    soak.procs['planner_node'].terminate()
-    soak.procs['planner_node'].wait(timeout=20)
-    start_node(soak, 'planner_node', NODES['planner_node'], suffix='_after_matrix')  # the soak's settings again
-    soak.restarts.append(('planner_node', stopped, time.time()))
+    from gpis_grasp_ros.tools.soak import NODES
+    _restart_node(soak, 'planner_node', NODES['planner_node'], '_after_matrix')  # the soak's settings again
     soak.figures['matrix'] = {
         'cells': len(cells), 'client_api': 'ask again (client.py)' if retry else 'plain rclpy call_async',
         **{f'requests_{k}': v for k, v in totals.items()},
@@ -364,7 +367,7 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
     rng = np.random.default_rng(0)
     base_y = np.asarray(model.train_y, dtype=np.float64)
     received_before = soak.log_count(r'GPIS received', ['planner_node'])
-    xs, ys, taken, plans_ok, plans = [], [], [], 0, 0
+    ys, taken, plans_ok, plans = [], [], 0, 0
     failures: dict[str, int] = {}
     started = time.monotonic()
     for k in range(count):
@@ -383,12 +386,11 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
                 reason = 'not answered within 60 s' if res is None else (res.message or 'no reason')[:60]
                 failures[reason] = failures.get(reason, 0) + 1
         if k % sample_every == sample_every - 1:
-            xs.append(k + 1)
             taken.append(soak.log_count(r'GPIS received', ['planner_node']) - received_before)
             ys.append(rss_mb(pid))
     time.sleep(2.0)
     received = soak.log_count(r'GPIS received', ['planner_node']) - received_before
-    half = len(xs) // 2
+    half = len(ys) // 2
     slope, slope_se = slope_with_error_per_1000(taken[half:], ys[half:])
     soak.node.destroy_publisher(pub)
     soak.figures['models'] = {
@@ -396,7 +398,6 @@ def model_stream(soak: Any, model: Any, count: int, plan_every: int = 50, rate_h
         'plan_failures': failures,
         'rss_first_mb': ys[0] if ys else float('nan'), 'rss_last_mb': ys[-1] if ys else float('nan'),
         'rss_max_mb': max(ys) if ys else float('nan'), 'threads_at_end': threads(pid),
-        'rss_slope_after_warmup_mb_per_1000_models': slope_per_1000(xs[half:], ys[half:]),
         'rss_slope_after_warmup_mb_per_1000_taken': slope, 'rss_slope_after_warmup_standard_error': slope_se,
         'rss_median_second_quarter_mb': _quarter_median(ys, 1), 'rss_median_last_quarter_mb': _quarter_median(ys, 3),
         'wall_clock_s': time.monotonic() - started,

@@ -246,6 +246,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
             try:
                 info = _secant_corrected(info, x - x_last, g - g_last) if info is not None else None
                 if info is None:
+                    objective(x)  # the Fisher information is read at x (no evaluation when x was the last one)
                     info = fisher_information(workspace, noise)
                 d[free] = -np.linalg.solve(info[np.ix_(free, free)], g[free])
                 if -float(g[free] @ d[free]) < 2.0 * _SCORING_GAIN:
@@ -280,8 +281,6 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                             fz, gz = objective(z)
                             if fz < f:
                                 x, f, g = z, fz, gz
-                            else:
-                                f, g = objective(x)  # the Fisher information is read at x
                     break
                 t *= 0.5
             if not moved or any(np.max(np.abs(x - o)) < _BASIN for o in optima):
