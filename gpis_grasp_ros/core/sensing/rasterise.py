@@ -14,6 +14,7 @@ from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.clear_body import Target, _clear_body_cells, prism_alternatives, prism_footprint
 from gpis_grasp_ros.core.sensing.occlusion import Feet
 from gpis_grasp_ros.core.sensing.params import HIDDEN_SUBCELLS, MISSING_HEIGHT_WINDOW_M, SensingParams
+from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, under_seen_surface
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
 
@@ -113,22 +114,18 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     def pixel(pts: np.ndarray, h: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return intrinsics.pixel_index(fine.to_sensor(pts, h))
 
-    u, v, inside = pixel(points, 0.0)
-    covered = inside & above[v, u] & np.repeat(np.repeat(cells, sub, axis=0), sub, axis=1)
+    covered = np.repeat(np.repeat(cells, sub, axis=0), sub, axis=1)  # the asked cells' points only
+    u, v, inside = pixel(points[covered], 0.0)
+    covered[covered] = inside & above[v, u]
     if not covered.any():
         return np.zeros((m_y, m_x))
     todo = points[covered]
-    under = np.zeros(todo.shape[0], dtype=bool)
     top = float(np.max(height[above]))
     n_h = int(np.clip(math.ceil(top * max(tan_max, 1e-3) / max(tol_m, 1e-6)) + 1, 2, max_samples))
-    for h in np.linspace(0.0, top, n_h):
-        pts = todo[~under]
-        if pts.shape[0] == 0:
-            break
-        u, v, inside = pixel(pts, float(h))
-        with np.errstate(invalid='ignore'):
-            near = np.linalg.norm(foot_xy[v, u] - pts, axis=-1) <= tol_m
-        under[np.flatnonzero(~under)[inside & above[v, u] & near]] = True
+    under = under_seen_surface(np.ascontiguousarray(todo), np.linspace(0.0, top, n_h), fine.rotation_matrix,
+                               float(fine.z), camera_vector(intrinsics),
+                               np.ascontiguousarray(foot_xy, dtype=np.float64), np.ascontiguousarray(above),
+                               float(tol_m))
     # a hidden point is table only if its occlusion shadow ends on the table: the ray over the local top of
     # what hides it (highest surface within window_m of the pixel looking at it) lands on the table beyond,
     # not on the object (a lower part of the object behind a taller one is object, not table)

@@ -1,5 +1,5 @@
-"""Compiled (numba) loops of the occlusion stage: solid columns drawn into a depth buffer, and the prism test
-placing a no-return pixel on its ray.
+"""Compiled (numba) loops of the occlusion stage: solid columns drawn into a depth buffer, the prism test
+placing a no-return pixel on its ray, and the march that finds the table points under a seen surface.
 
 They do per point what the array code around them would do with one temporary array per operation (the
 same IEEE operations in the same order, so the same numbers), but point by point with early exits: a column
@@ -8,6 +8,8 @@ at its first pixel off the object. ``cam`` is (fx, fy, cx, cy) of :class:`~.came
 (:func:`camera_vector`)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -129,4 +131,46 @@ def under_prism(base, normal, heights, cam, sil):
                 ok = False
                 break
         out[i] = ok
+    return out
+
+
+@njit(cache=True, nogil=True, inline='always')
+def grid_point(x, y, h, rot, z0):
+    """Sensor-frame point of grid point (x, y) at height h above the table (``GridGeometry.to_sensor`` of a grid
+    with rotation ``rot`` and ``z0``), summed term by term as :func:`grid_points` does."""
+    lz = z0 - h
+    return (x * rot[0, 0] + y * rot[0, 1] + lz * rot[0, 2],
+            x * rot[1, 0] + y * rot[1, 1] + lz * rot[1, 2],
+            x * rot[2, 0] + y * rot[2, 1] + lz * rot[2, 2])
+
+
+def grid_points(xy: np.ndarray, h: float, rot: np.ndarray, z0: float) -> np.ndarray:
+    """:func:`grid_point` as array code: ``(N, 2)`` grid points at height ``h`` → ``(N, 3)`` sensor points."""
+    x, y = xy[:, 0], xy[:, 1]
+    lz = z0 - h
+    return np.stack([x * rot[0, 0] + y * rot[0, 1] + lz * rot[0, 2],
+                     x * rot[1, 0] + y * rot[1, 1] + lz * rot[1, 2],
+                     x * rot[2, 0] + y * rot[2, 1] + lz * rot[2, 2]], axis=-1)
+
+
+@njit(cache=True, nogil=True)
+def under_seen_surface(pts, heights, rot, z0, cam, foot_xy, above, tol):
+    """Whether each table point ``pts`` (N, 2) (grid frame) lies under a surface the camera sees: at one of
+    ``heights`` (tried in order, stopping at the first), the pixel looking at the point that high above it sees
+    a surface (``above``) whose orthographic foot ``foot_xy`` (H, W, 2) is within ``tol`` of the point."""
+    rows, cols = above.shape
+    out = np.zeros(pts.shape[0], dtype=np.bool_)
+    for i in range(pts.shape[0]):
+        x = pts[i, 0]
+        y = pts[i, 1]
+        for h in heights:
+            sx, sy, sz = grid_point(x, y, h, rot, z0)
+            u, v = _pixel(sx, sy, sz, cam, cols, rows)
+            if u < 0 or not above[v, u]:
+                continue
+            dx = foot_xy[v, u, 0] - x
+            dy = foot_xy[v, u, 1] - y
+            if math.sqrt(dx * dx + dy * dy) <= tol:  # NaN feet never are
+                out[i] = True
+                break
     return out
