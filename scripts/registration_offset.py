@@ -57,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--shift', type=int, nargs=2, default=None, metavar=('DV', 'DU'),
                    help='also segment with the depth moved by DV rows and DU columns')
     a = p.parse_args(argv)
-    head = '| capture | depth IoU at (0, 0) | best depth shift (rows, cols): IoU | colour IoU at (0, 0) | best colour shift |'
+    head = ('| capture | depth IoU at (0, 0) | best depth shift (rows, cols): IoU | colour IoU at (0, 0) '
+            '| best colour shift |')
     if a.shift:
         head += f' occupancy IoU | with the depth moved by ({a.shift[0]}, {a.shift[1]}) |'
     print(head)
