@@ -136,21 +136,13 @@ def under_prism(base, normal, heights, cam, sil):
 
 @njit(cache=True, nogil=True, inline='always')
 def grid_point(x, y, h, rot, z0):
-    """Sensor-frame point of grid point (x, y) at height h above the table (``GridGeometry.to_sensor`` of a grid
-    with rotation ``rot`` and ``z0``), summed term by term as :func:`grid_points` does."""
+    """Sensor-frame point of grid point (x, y) at height h above the table: ``GridGeometry.to_sensor`` of a grid
+    with rotation ``rot`` and ``z0``, summed term by term (the grid's BLAS product may round the last bit
+    otherwise)."""
     lz = z0 - h
     return (x * rot[0, 0] + y * rot[0, 1] + lz * rot[0, 2],
             x * rot[1, 0] + y * rot[1, 1] + lz * rot[1, 2],
             x * rot[2, 0] + y * rot[2, 1] + lz * rot[2, 2])
-
-
-def grid_points(xy: np.ndarray, h: float, rot: np.ndarray, z0: float) -> np.ndarray:
-    """:func:`grid_point` as array code: ``(N, 2)`` grid points at height ``h`` → ``(N, 3)`` sensor points."""
-    x, y = xy[:, 0], xy[:, 1]
-    lz = z0 - h
-    return np.stack([x * rot[0, 0] + y * rot[0, 1] + lz * rot[0, 2],
-                     x * rot[1, 0] + y * rot[1, 1] + lz * rot[1, 2],
-                     x * rot[2, 0] + y * rot[2, 1] + lz * rot[2, 2]], axis=-1)
 
 
 @njit(cache=True, nogil=True)

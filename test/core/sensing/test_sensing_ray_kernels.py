@@ -13,7 +13,7 @@ from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
 from gpis_grasp_ros.core.sensing.clear_body import prism_footprint
 from gpis_grasp_ros.core.sensing.occlusion import column_zbuffer, see_through_pixels
-from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, grid_points, prism_heights, under_seen_surface
+from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, grid_point, prism_heights, under_seen_surface
 from gpis_grasp_ros.core.table_frame import TableFrame
 from support.tilted_scene import Box, TiltedScene
 
@@ -139,7 +139,16 @@ def test_prism_footprint_equals_the_array_code(tilt):
         assert np.array_equal(got, _footprint_reference(cells, solid, table, intr, h))
 
 
-def _under_reference(pts, heights, geometry, intr, foot_xy, above, tol, points_of=grid_points):
+def _grid_points(xy, h, rot, z0):
+    """``ray_kernels.grid_point`` as array code: (N, 2) grid points at height h -> (N, 3) sensor points."""
+    x, y = xy[:, 0], xy[:, 1]
+    lz = z0 - h
+    return np.stack([x * rot[0, 0] + y * rot[0, 1] + lz * rot[0, 2],
+                     x * rot[1, 0] + y * rot[1, 1] + lz * rot[1, 2],
+                     x * rot[2, 0] + y * rot[2, 1] + lz * rot[2, 2]], axis=-1)
+
+
+def _under_reference(pts, heights, intr, foot_xy, above, tol, points_of):
     """The array march the compiled loop replaced: every remaining point projected at each height in turn."""
     under = np.zeros(pts.shape[0], dtype=bool)
     for h in heights:
@@ -170,18 +179,19 @@ def test_under_seen_surface_equals_the_array_march(tilt):
                              camera_vector(intr), np.ascontiguousarray(foot_xy), solid, tol)
     rot, z0 = geometry.rotation_matrix, float(geometry.z)
     assert got.sum() > 200 and (~got).sum() > 200
-    assert np.array_equal(got, _under_reference(pts, heights, geometry, intr, foot_xy, solid, tol,
-                                                lambda q, h: grid_points(q, h, rot, z0)))
+    assert np.array_equal(got, _under_reference(pts, heights, intr, foot_xy, solid, tol,
+                                                lambda q, h: _grid_points(q, h, rot, z0)))
     # and the grid's own placement (a BLAS product, rounded otherwise in the last bit) finds the same points
-    assert np.array_equal(got, _under_reference(pts, heights, geometry, intr, foot_xy, solid, tol,
-                                                geometry.to_sensor))
+    assert np.array_equal(got, _under_reference(pts, heights, intr, foot_xy, solid, tol, geometry.to_sensor))
 
 
-def test_grid_points_place_points_as_the_grid_does():
+def test_grid_point_places_points_as_the_grid_does():
     g = TableFrame.from_plane(0.1, -0.5, -0.86, 0.6).grid(-0.05, -0.04, 0.002, 50, 40)
     xy = np.random.default_rng(3).uniform(-0.05, 0.05, (500, 2))
-    np.testing.assert_allclose(grid_points(xy, 0.03, g.rotation_matrix, g.z), g.to_sensor(xy, 0.03), rtol=0,
-                               atol=1e-15)
+    rot, z0 = g.rotation_matrix, float(g.z)
+    got = np.array([grid_point(float(x), float(y), 0.03, rot, z0) for x, y in xy])
+    np.testing.assert_allclose(got, g.to_sensor(xy, 0.03), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(got, _grid_points(xy, 0.03, rot, z0))  # the array reference, bit for bit
 
 
 def test_a_ray_leaving_the_image_is_under_no_prism():
