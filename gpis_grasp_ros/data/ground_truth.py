@@ -15,6 +15,12 @@ docs/ground-truth.md:
    (a twiced Gaussian), which removes the mask's pixel staircase but does not shrink curved parts;
 4. the SDF is the exact signed distance to that polygon (positive outside), so its finite differences are
    the outline's normals and not a raster's.
+
+When the true depth is the capture's own depth, it is first registered to the mask: moved by the integer shift
+that best overlays the mask on the depth's above-table pixels (:func:`mask_registration`). A structured-light
+sensor's depth image is offset from the image its intrinsics and the label belong to by a few pixels; unmoved, the
+truth would take the table's heights along one side of the mask (its pixels projected where their rays meet the
+table) and miss the object's on the other. The footprint stays where the label (and the colour image) put it.
 """
 
 from __future__ import annotations
@@ -41,6 +47,12 @@ SMOOTHING_SIGMA_PIXELS = 3.0
 BELOW_TABLE_M = 0.005
 #: Smallest height step (m) taken as a depth discontinuity: three times a 1-2 mm depth noise.
 JUMP_FLOOR_M = 0.005
+#: Largest label-to-depth misregistration searched (pixels, rows and columns): a structured-light sensor's depth is
+#: offset from its image by a few pixels (about 4 px measured on a Kinect, Smisek et al. 2011); twice that.
+MASK_REGISTRATION_RADIUS_PX = 8
+#: Height (m) above the table from which a depth pixel sees an object when a mask is registered to the depth: the
+#: segmentation's depth-evidence floor (``SensingParams.height_threshold``), at least twice the table's RMS.
+MASK_REGISTRATION_HEIGHT_M = 0.003
 
 
 @dataclass
@@ -53,11 +65,13 @@ class GroundTruth:
     center_of_mass: np.ndarray  # (3,) camera frame, on the table plane (m)
     outline: np.ndarray  # (K, 3) camera frame, on the table plane (m)
     table: TableFrame
+    depth_shift_px: tuple[int, int] = (0, 0)  # (rows, columns) the true depth was moved to register it to the mask
 
 
 def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.ndarray, target_px: tuple[float, float],
                            table: TableFrame, resolution: float = 0.001, margin: float = 0.03,
-                           frame_id: str = 'camera_color_optical_frame') -> GroundTruth:
+                           frame_id: str = 'camera_color_optical_frame',
+                           register_depth: bool | None = None) -> GroundTruth:
     """Ground truth of the mask component containing ``target_px`` (module docstring).
 
     Args:
@@ -68,10 +82,23 @@ def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.nd
         table: table plane (camera frame) whose frame the ground truth uses.
         resolution, margin: ground-truth grid cell (m) and free margin around the shape (m).
         frame_id: frame of the grid (rgbd_import.FRAME_ID by default).
+        register_depth: move the true depth onto the mask first (:func:`mask_registration`); None: when the true
+            depth is the capture's own depth (the label was drawn on that capture). A separate true-shape capture
+            (an opaque twin) is not registered: its offset from the mask may be the twin's placement.
     """
-    comp = _component(mask, target_px)
     intr = capture.intrinsics
     depth = np.asarray(true_depth, dtype=np.float64)
+    labels = np.asarray(mask) > 0 if np.asarray(mask).dtype != bool else np.asarray(mask)
+    if register_depth is None:
+        register_depth = depth.shape == capture.depth.shape and bool(
+            np.array_equal(depth, np.asarray(capture.depth, dtype=np.float64), equal_nan=True))
+    shift = (0, 0)
+    if register_depth:
+        shift = mask_registration(labels, depth, intr, table)
+        moved = shifted(np.where(np.isfinite(depth), depth, 0.0), -shift[0], -shift[1])
+        depth = np.where(moved > 0, moved, np.nan)
+        shift = (-shift[0], -shift[1])
+    comp = _component(labels, target_px)
     heights = _surface_heights(intr.rays(), comp, depth, table)
     comp &= heights > -BELOW_TABLE_M  # points below the table are depth errors
     if comp.sum() < 10:
@@ -95,7 +122,58 @@ def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.nd
     inside = sdf < 0
     return GroundTruth(sdf=sdf.astype(np.float32), occupancy=np.where(inside, 100, 0).astype(np.int8), geometry=geom,
                        center_of_mass=geom.to_sensor(polygon_centroid(outline_xy)),
-                       outline=geom.to_sensor(outline_xy), table=table)
+                       outline=geom.to_sensor(outline_xy), table=table, depth_shift_px=shift)
+
+
+def mask_registration(mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics, table: TableFrame,
+                      radius: int = MASK_REGISTRATION_RADIUS_PX) -> tuple[int, int]:
+    """Integer shift s = (rows, columns), at most ``radius`` each, by which the object ``mask`` (all its components:
+    a misregistration is the sensor's, the same for every object) lies off the depth's objects; moving the depth
+    by -s registers it to the mask.
+
+    For each candidate s the depth is moved by -s and read on the rays of the pixels it lands on (at a 50° tilt the
+    table's depth changes by ~1.3 mm per row, so a depth read on the wrong ray is not the table's); a pixel sees an
+    object when it is more than max(MASK_REGISTRATION_HEIGHT_M, 2 x the table's RMS) above the table. The score is
+    |A ∩ E| / (|A| + |E ∩ ring|): A the mask, E the object pixels, ring the band of ``radius`` pixels around A,
+    where a registered depth shows table; without the ring, a shift that slides a neighbour under the mask would
+    count as a gain. Ties (a flat or absent object) go to the smaller shift, so a registered depth stays put.
+    """
+    a = np.asarray(mask, dtype=bool)
+    if not a.any():
+        return 0, 0
+    size = 2 * radius + 1
+    ring = cv2.dilate(a.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))) > 0
+    ring &= ~a
+    rows, cols = np.nonzero(ring | a)
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    a, ring = a[r0:r1, c0:c1], ring[r0:r1, c0:c1]
+    along = intr.rays()[r0:r1, c0:c1] @ table.n  # the height of depth z on each pixel's ray is z * along + offset
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)
+    pad = np.pad(z, radius, constant_values=np.nan)
+    thr = max(MASK_REGISTRATION_HEIGHT_M, 2.0 * table.rms_m)
+    area = float(a.sum())
+    best, best_key = (0, 0), None
+    for dv in range(-radius, radius + 1):
+        for du in range(-radius, radius + 1):
+            zs = pad[r0 + radius + dv:r1 + radius + dv, c0 + radius + du:c1 + radius + du]  # depth(p + s) at p
+            with np.errstate(invalid='ignore'):
+                e = zs * along + table.offset_m > thr
+            score = float(np.count_nonzero(a & e)) / (area + float(np.count_nonzero(ring & e)))
+            key = (score, -(dv * dv + du * du))
+            if best_key is None or key > best_key:
+                best, best_key = (dv, du), key
+    return best
+
+
+def shifted(image: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """``image`` moved down by ``rows`` and right by ``cols`` pixels; what it leaves is False / 0."""
+    out = np.zeros_like(image)
+    h, w = image.shape[:2]
+    if abs(rows) >= h or abs(cols) >= w:
+        return out
+    out[max(rows, 0):h + min(rows, 0), max(cols, 0):w + min(cols, 0)] = \
+        image[max(-rows, 0):h + min(-rows, 0), max(-cols, 0):w + min(-cols, 0)]
+    return out
 
 
 def polygon_sdf(polygon: np.ndarray, points: np.ndarray) -> np.ndarray:
