@@ -94,10 +94,9 @@ def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.nd
             np.array_equal(depth, np.asarray(capture.depth, dtype=np.float64), equal_nan=True))
     shift = (0, 0)
     if register_depth:
-        shift = mask_registration(labels, depth, intr, table)
-        moved = shifted(np.where(np.isfinite(depth), depth, 0.0), -shift[0], -shift[1])
-        depth = np.where(moved > 0, moved, np.nan)
-        shift = (-shift[0], -shift[1])
+        off = mask_registration(labels, depth, intr, table)
+        shift = (-off[0], -off[1])
+        depth = shifted(depth, *shift, fill=np.nan)
     comp = _component(labels, target_px)
     heights = _surface_heights(intr.rays(), comp, depth, table)
     comp &= heights > -BELOW_TABLE_M  # points below the table are depth errors
@@ -165,9 +164,9 @@ def mask_registration(mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsic
     return best
 
 
-def shifted(image: np.ndarray, rows: int, cols: int) -> np.ndarray:
-    """``image`` moved down by ``rows`` and right by ``cols`` pixels; what it leaves is False / 0."""
-    out = np.zeros_like(image)
+def shifted(image: np.ndarray, rows: int, cols: int, fill: float | bool = 0) -> np.ndarray:
+    """``image`` moved down by ``rows`` and right by ``cols`` pixels; the pixels it leaves get ``fill``."""
+    out = np.full_like(image, fill)
     h, w = image.shape[:2]
     if abs(rows) >= h or abs(cols) >= w:
         return out
@@ -197,8 +196,7 @@ def polygon_centroid(polygon: np.ndarray) -> np.ndarray:
 
 
 def _component(mask: np.ndarray, target_px: tuple[float, float]) -> np.ndarray:
-    m = np.asarray(mask) > 0 if np.asarray(mask).dtype != bool else np.asarray(mask)
-    _, labels = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
+    _, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
     u, v = (int(round(c)) for c in target_px)
     if not (0 <= v < labels.shape[0] and 0 <= u < labels.shape[1]) or labels[v, u] == 0:
         raise ValueError(f'target pixel ({u}, {v}) is not on the mask')

@@ -178,7 +178,6 @@ def test_truth_follows_the_analytic_outline(prism):
     assert f['outline_p90'] <= 5.0, f
 
 
-
 def _own_depth_capture(prism: Prism, noise_m: float = 0.0, seed: int = 0):
     """(capture, mask, target pixel) of ``prism`` whose depth (the table included) is also the true depth."""
     depth, mask = prism.render()
@@ -191,8 +190,7 @@ def _own_depth_capture(prism: Prism, noise_m: float = 0.0, seed: int = 0):
 
 
 def _displaced(capture: ri.Capture, rows: int, cols: int) -> ri.Capture:
-    moved = gt.shifted(np.nan_to_num(capture.depth, nan=0.0), rows, cols)
-    return ri.Capture(capture.rgb, np.where(moved > 0, moved, np.nan), capture.intrinsics)
+    return ri.Capture(capture.rgb, gt.shifted(capture.depth, rows, cols, fill=np.nan), capture.intrinsics)
 
 
 @pytest.mark.parametrize('prism', CASES, ids=lambda p: f'{p.kind}-{p.camera.width}-{p.distance}-{p.yaw_deg:g}')
