@@ -17,7 +17,7 @@ import numpy as np
 
 from gpis_grasp_ros.core.contact_kernel import exact_contacts, unit_normals, unit_normals_from_values
 from gpis_grasp_ros.core.gripper import GripperParams
-from gpis_grasp_ros.core.sdf_bank import MIN_GRADIENT_NORM, WORKSPACE, SdfBank, gather_records
+from gpis_grasp_ros.core.sdf_bank import MIN_GRADIENT_NORM, WORKSPACE, SdfBank, bilinear, gather_records
 
 #: Interpolated points per chunk in :func:`find_contacts`: small enough for the temporaries to stay in
 #: cache (about 2x faster than large chunks), large enough to amortise the Python overhead.
@@ -37,7 +37,9 @@ class Contacts:
     ``c1, c2`` contact points (m) and ``n1, n2`` unit outward normals, NaN where no contact;
     ``width`` jaw separation ‖ĝ2 − ĝ1‖ (m); ``clearance1, clearance2`` the smallest SDF value (m)
     over each jaw face before closing (negative: the jaw starts inside the object);
-    ``no_normal`` a contact exists but the SDF gradient vanishes there (no defined normal, NaN n).
+    ``no_normal`` a contact exists but the SDF gradient vanishes there (no defined normal, NaN n);
+    ``on_obstacle`` a jaw meets another object (the bank's obstacles, within :data:`OBSTACLE_CONTACT_CELLS`)
+    instead of the target: the grasp would push or hold the neighbour, so it is invalid.
     """
 
     c1: np.ndarray
@@ -52,6 +54,13 @@ class Contacts:
     clearance1: np.ndarray
     clearance2: np.ndarray
     no_normal: np.ndarray | None = None
+    on_obstacle: np.ndarray | None = None
+
+
+#: A contact within this many cells of an obstacle's surface is on the obstacle: the bilinear world grid
+#: ``min(f, obstacles)`` blends the two within a cell, and a jaw this close to a neighbour touches it at the
+#: grid's resolution.
+OBSTACLE_CONTACT_CELLS = 0.5
 
 
 def perturb_grasps(jaw1: np.ndarray, jaw2: np.ndarray, eps: np.ndarray,
@@ -114,7 +123,8 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
         return Contacts(c1=e2.reshape(lead + (2,)), c2=e2.reshape(lead + (2,)), n1=e2.reshape(lead + (2,)),
                         n2=e2.reshape(lead + (2,)), valid=none.reshape(lead), no_contact=none.reshape(lead),
                         start_inside=none.reshape(lead), opening_exceeded=none.reshape(lead), width=e1.reshape(lead),
-                        clearance1=e1.reshape(lead), clearance2=e1.reshape(lead), no_normal=none.reshape(lead))
+                        clearance1=e1.reshape(lead), clearance2=e1.reshape(lead), no_normal=none.reshape(lead),
+                        on_obstacle=none.reshape(lead))
     parts = [_march_chunk(bank, a[s:s + chunk], unit[s:s + chunk], length[s:s + chunk], n_seg[s:s + chunk],
                           offsets, n_steps, None if idx is None else idx[s:s + chunk], gripper.patch_cells(g),
                           gripper.exact_crossings, use_kernel)
@@ -152,13 +162,19 @@ def find_contacts(bank: SdfBank, jaw1: np.ndarray, jaw2: np.ndarray, gripper: Gr
         opening = width > gripper.max_opening * (1.0 + 1e-9) + 1e-12
     else:
         opening = np.zeros(t_total, dtype=bool)
-    valid = ~(no_contact | inside | opening | no_normal)
+    on_obstacle = np.zeros(t_total, dtype=bool)
+    if bank.obstacles is not None:
+        reach = OBSTACLE_CONTACT_CELLS * g.resolution
+        near = [bilinear(bank.obstacles, g, np.nan_to_num(cm[k])) <= reach for k in range(2)]
+        on_obstacle = (near[0] | near[1]) & ~no_contact
+    valid = ~(no_contact | inside | opening | no_normal | on_obstacle)
     shape2 = lead + (2,)
     return Contacts(
         c1=cm[0].reshape(shape2), c2=cm[1].reshape(shape2), n1=normals[0].reshape(shape2),
         n2=normals[1].reshape(shape2), valid=valid.reshape(lead), no_contact=no_contact.reshape(lead),
         start_inside=inside.reshape(lead), opening_exceeded=opening.reshape(lead), width=width.reshape(lead),
         clearance1=clear[0].reshape(lead), clearance2=clear[1].reshape(lead), no_normal=no_normal.reshape(lead),
+        on_obstacle=on_obstacle.reshape(lead),
     )
 
 

@@ -39,14 +39,34 @@ def publishable_grids(result: SensingResult) -> tuple[np.ndarray, np.ndarray, Gr
     return occ, noise, message_geometry(result.geometry)
 
 
+def publishable_obstacles(result: SensingResult) -> np.ndarray:
+    """The other objects in the target's grid as an int8 occupancy (100 = another object's cell, 0 = not), the
+    ``object/obstacles`` grid segmentation_node publishes beside the target's."""
+    obstacles = np.zeros(result.geometry.shape, bool) if result.obstacles is None else result.obstacles
+    return np.where(obstacles, 100, 0).astype(np.int8)
+
+
+def obstacle_distance(obstacles: np.ndarray | None, geometry: GridGeometry) -> np.ndarray | None:
+    """Signed distance (m) to the obstacle cells of an occupancy (>= 50, ``object/obstacles``); None without any."""
+    if obstacles is None:
+        return None
+    obstacles = np.asarray(obstacles)
+    if obstacles.shape != geometry.shape:
+        raise ValueError(f'the obstacle grid {obstacles.shape} must be {geometry.shape}, like the occupancy')
+    cells = obstacles >= 50
+    return signed_distance(cells, geometry.resolution) if cells.any() else None
+
+
 def posterior_from_grids(occupancy: np.ndarray, noise: np.ndarray, geometry: GridGeometry,
                          params: GpisParams = GpisParams(), *,
-                         warm_start: HyperparameterFit | None = None) -> GpisPosterior:
+                         warm_start: HyperparameterFit | None = None,
+                         obstacles: np.ndarray | None = None) -> GpisPosterior:
     """Occupancy (0..100, -1 = missing) and noise map (m^2, NaN = excluded) → GPIS (section III-B).
 
     Missing cells count as object in the SDF but are not used for training, as in the paper.
     ``warm_start``: the previous frame's ``posterior.hyperparameter_fit`` of the same scene
-    (see :func:`~gpis_grasp_ros.core.gpis.fit_gpis`).
+    (see :func:`~gpis_grasp_ros.core.gpis.fit_gpis`). ``obstacles``: the other objects' cells (>= 50,
+    :func:`publishable_obstacles`), which the jaws must keep out of (the posterior's ``obstacles``).
     """
     occupancy = np.asarray(occupancy)
     noise = np.asarray(noise, dtype=np.float64)
@@ -62,4 +82,6 @@ def posterior_from_grids(occupancy: np.ndarray, noise: np.ndarray, geometry: Gri
     if np.any(noise[train] < 0):
         raise ValueError('the noise map has negative variances')
     distance = signed_distance(occupied, geometry.resolution)
-    return fit_gpis(distance, np.where(train, noise, 0.0), train, geometry, params, warm_start=warm_start)
+    obstacle = obstacle_distance(obstacles, geometry)
+    posterior = fit_gpis(distance, np.where(train, noise, 0.0), train, geometry, params, warm_start=warm_start)
+    return posterior if obstacle is None else replace(posterior, obstacles=obstacle)

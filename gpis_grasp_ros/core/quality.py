@@ -230,8 +230,10 @@ class ShapeSamples:
     @property
     def com(self) -> np.ndarray:
         """(S, 2) centres of mass (m) of the samples {f_m < 0} (computed on first access when not given)."""
-        if self._com is None:
-            self._com = center_of_mass(self.bank.sdfs, self.bank.geometry)
+        if self._com is None:  # the target's cells: inside a sample and not inside an obstacle
+            sdfs = self.bank.sdfs if self.bank.obstacles is None else np.where(
+                self.bank.obstacles[None] < 0, np.inf, self.bank.sdfs)
+            self._com = center_of_mass(sdfs, self.bank.geometry)
         return self._com
 
     @property
@@ -248,7 +250,8 @@ def draw_shape_samples(posterior: GpisPosterior, n: int, rng: np.random.Generato
     the float64 ones by ~1e-9 m and the force-closure counts by a trial in thousands, docs/speed.md), the
     mean is added in float64. ``np.float64`` gives exactly ``SdfBank(posterior.sample(n, rng))``.
     """
-    bank = SdfBank.from_deviations(posterior.mean, posterior.sample_deviations(n, rng, precision), posterior.geometry)
+    bank = SdfBank.from_deviations(posterior.mean, posterior.sample_deviations(n, rng, precision), posterior.geometry,
+                                   obstacles=posterior.obstacles)
     eps = rng.standard_normal((n, 2, 2))
     if rho is None:
         rho = torque_scale(posterior.mean, posterior.geometry)

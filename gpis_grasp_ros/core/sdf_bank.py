@@ -101,15 +101,16 @@ def _prepare(sdfs, ic, jc, dist, padded, lipschitz, positive):
 
 
 @njit(cache=True, nogil=True)
-def _prepare_deviations(mean, deviations, ic, jc, dist, padded, lipschitz, positive):
-    """:func:`_prepare` of the grids ``mean + deviations[k]`` (float64 sums, one grid at a time in a scratch
-    grid: the bank keeps them only as the padded grids' interior)."""
+def _prepare_deviations(mean, deviations, obstacles, ic, jc, dist, padded, lipschitz, positive):
+    """:func:`_prepare` of the grids ``min(mean + deviations[k], obstacles)`` (float64 sums, one grid at a time in
+    a scratch grid: the bank keeps them only as the padded grids' interior; ``obstacles`` +inf where there are
+    none, which leaves the sums' bits unchanged)."""
     h, w = mean.shape
     sdf = np.empty((h, w))
     for k in range(deviations.shape[0]):
         for i in range(h):
             for j in range(w):
-                sdf[i, j] = mean[i, j] + np.float64(deviations[k, i * w + j])
+                sdf[i, j] = min(mean[i, j] + np.float64(deviations[k, i * w + j]), obstacles[i, j])
         _pad_grid(sdf, ic, jc, dist, padded[k])
         lipschitz[k] = grid_lipschitz(padded[k])
         positive[k] = grid_border_positive(padded[k])
@@ -160,6 +161,10 @@ def gather_records(rec: np.ndarray, flat: np.ndarray, dtype: np.dtype, name: str
 class SdfBank:
     """A stack of ``B`` SDF grids (m) on one geometry, prepared for batched bilinear lookups.
 
+    ``obstacles`` (H, W), the signed distance (m) to the other objects in the grid (deterministic), makes every
+    grid the world the jaws move in, ``min(f, obstacles)``: a jaw must start outside both and stops at whichever
+    it meets first; :func:`~gpis_grasp_ros.core.contacts.find_contacts` flags a contact on an obstacle.
+
     ``gradients`` (B, H, W, 2) holds ∂f/∂x, ∂f/∂y (dimensionless); by default central finite
     differences of each grid (the right normals for Monte-Carlo samples). Pass the GPIS
     posterior's analytic gradient for the mean shape.
@@ -177,7 +182,17 @@ class SdfBank:
     """
 
     def __init__(self, sdfs: np.ndarray, geometry: GridGeometry, gradients: np.ndarray | None = None,
-                 pad_cells: int = 6, dtype: type = np.float32, *, _n_deviations: int | None = None) -> None:
+                 pad_cells: int = 6, dtype: type = np.float32, *, obstacles: np.ndarray | None = None,
+                 _n_deviations: int | None = None) -> None:
+        if geometry.height < 2 or geometry.width < 2:
+            raise ValueError('contact finding needs a grid of at least 2 x 2 cells')
+        if obstacles is not None:
+            obstacles = np.ascontiguousarray(obstacles, dtype=np.float64)
+            if obstacles.shape != geometry.shape or not np.all(np.isfinite(obstacles)):
+                raise ValueError(f'the obstacle distance must be a finite grid of shape {geometry.shape}, got '
+                                 f'{obstacles.shape}')
+        #: (H, W) signed distance (m) to the other objects, min-ed into every grid (None: no obstacle)
+        self.obstacles = obstacles
         if _n_deviations is None:
             sdfs = np.ascontiguousarray(sdfs, dtype=np.float64)
             if sdfs.ndim == 2:
@@ -185,8 +200,14 @@ class SdfBank:
             if sdfs.ndim != 3 or sdfs.shape[1:] != geometry.shape:
                 raise ValueError(f'SDF grids must have shape (B, {geometry.height}, {geometry.width}), '
                                  f'got {sdfs.shape}')
-        if geometry.height < 2 or geometry.width < 2:
-            raise ValueError('contact finding needs a grid of at least 2 x 2 cells')
+            if obstacles is not None:
+                world = np.minimum(sdfs, obstacles[None])
+                if gradients is not None:  # where an obstacle is nearer, the world's gradient is the obstacle's
+                    gradients = np.asarray(gradients, dtype=np.float64)
+                    gradients = np.where((obstacles[None] < sdfs)[..., None],
+                                         obstacle_gradient(obstacles, geometry.resolution),
+                                         gradients if gradients.ndim == 4 else gradients[None])
+                sdfs = world
         self.geometry = geometry
         n = sdfs.shape[0] if _n_deviations is None else _n_deviations
         self.n = n
@@ -232,19 +253,21 @@ class SdfBank:
 
     @classmethod
     def from_deviations(cls, mean: np.ndarray, deviations: np.ndarray, geometry: GridGeometry,
-                        pad_cells: int = 6) -> SdfBank:
+                        pad_cells: int = 6, obstacles: np.ndarray | None = None) -> SdfBank:
         """The bank of the grids ``mean + deviations[k]``: ``mean`` (H, W) m, ``deviations`` (B, H*W) row-major
         (float32 or float64, e.g. :meth:`GpisPosterior.sample_deviations`), each grid summed in float64 within the
         compiled set-up pass. With float64 deviations the bank equals ``SdfBank(mean + deviations)`` bit for bit
-        (its ``sdfs`` are a view of the padded grids' interior, where an exact -0.0 reads +0.0)."""
+        (its ``sdfs`` are a view of the padded grids' interior, where an exact -0.0 reads +0.0); ``obstacles`` as
+        in the constructor."""
         mean = np.ascontiguousarray(mean, dtype=np.float64)
         deviations = np.ascontiguousarray(deviations)
         if mean.shape != geometry.shape or deviations.ndim != 2 or deviations.shape[1] != mean.size:
             raise ValueError(f'mean {mean.shape} and deviations {deviations.shape} do not match the grid '
                              f'{geometry.shape}')
-        bank = cls(mean, geometry, pad_cells=pad_cells, _n_deviations=deviations.shape[0])
+        bank = cls(mean, geometry, pad_cells=pad_cells, obstacles=obstacles, _n_deviations=deviations.shape[0])
         ic, jc, dist = _pad_distances(geometry.height, geometry.width, bank.pad, geometry.resolution)
-        _prepare_deviations(mean, deviations, ic, jc, dist, bank.padded, bank.lipschitz, bank.border_positive)
+        world = np.full(geometry.shape, np.inf) if obstacles is None else bank.obstacles
+        _prepare_deviations(mean, deviations, world, ic, jc, dist, bank.padded, bank.lipschitz, bank.border_positive)
         return bank
 
     @property
@@ -387,6 +410,12 @@ class SdfBank:
         grad /= np.where(ok, norm, 1.0)
         grad *= ok
         return grad
+
+
+def obstacle_gradient(obstacles: np.ndarray, resolution: float) -> np.ndarray:
+    """(H, W, 2) ∂/∂x, ∂/∂y of an obstacle distance grid (central differences, ``np.gradient``'s)."""
+    gy, gx = np.gradient(np.asarray(obstacles, dtype=np.float64), resolution)
+    return np.stack([gx, gy], axis=-1)
 
 
 def bilinear(grid: np.ndarray, geometry: GridGeometry, xy: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ import numpy as np
 
 from gpis_grasp_ros.core.gpis import GpisParams, GpisPosterior
 from gpis_grasp_ros.core.grid import GridGeometry
-from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
+from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids, publishable_obstacles
 from gpis_grasp_ros.core.sensing import (
     CameraIntrinsics,
     SensingParams,
@@ -113,4 +113,4 @@ def posterior_from_scene(scene: BagScene, sensing_params: SensingParams = Sensin
     result = segment_frames(scene.rgb_frames, scene.depth_frames, scene.intrinsics, sensing_params,
                             frame_id=scene.frame_id)
     occ, noise, geometry = publishable_grids(result)
-    return posterior_from_grids(occ, noise, geometry, gpis_params), result
+    return posterior_from_grids(occ, noise, geometry, gpis_params, obstacles=publishable_obstacles(result)), result

@@ -419,8 +419,9 @@ def posterior_to_gpis_model(posterior: Any, header: Any, f: MessageFactory, com_
     exact posterior with
     :func:`gpis_model_to_posterior`), mean and variance on the grid, and the centre of mass of the
     mean shape with its RMS spread over ``com_samples`` posterior samples (seeded, deterministic), and the
-    object's measured ``object_height`` (m above the table, 0 = unknown; not part of the posterior).
-    ``f`` builds the messages (rosbags or rclpy flavour). Lengths in m, variances in m^2.
+    object's measured ``object_height`` (m above the table, 0 = unknown; not part of the posterior), and the
+    posterior's ``obstacles`` (``obstacle_distance``, empty without). ``f`` builds the messages (rosbags or
+    rclpy flavour). Lengths in m, variances in m^2.
     """
     height = float(object_height)
     if not (math.isfinite(height) and height >= 0):
@@ -445,6 +446,8 @@ def posterior_to_gpis_model(posterior: Any, header: Any, f: MessageFactory, com_
                                                    dtype=np.float64), np.float64),
         mean=f.seq(np.asarray(posterior.mean, dtype=np.float64), np.float64),
         variance=f.seq(np.asarray(posterior.variance, dtype=np.float64), np.float64),
+        obstacle_distance=f.seq(np.zeros(0) if getattr(posterior, 'obstacles', None) is None
+                                else np.asarray(posterior.obstacles, dtype=np.float64), np.float64),
         center_of_mass=f.new('geometry_msgs/msg/Point', x=float(com_xy[0]), y=float(com_xy[1]), z=float(g.z)),
         center_of_mass_std=com_std, object_height=height)
 
@@ -505,9 +508,16 @@ def gpis_model_to_posterior(msg: Any) -> Any:
     if k and not (np.isfinite(grad_x).all() and np.isfinite(grad).all() and np.isfinite(grad_noise).all()
                   and (grad_noise >= 0).all() and np.isin(grad_axis, (0, 1)).all()):
         raise ValueError('GpisModel gradient observations must be finite with axis 0 or 1 and non-negative noise')
+    obstacles = _as_array(getattr(msg, 'obstacle_distance', ()), np.float64)
+    if obstacles.size not in (0, cells) or not np.isfinite(obstacles).all():
+        raise ValueError(f'GpisModel.obstacle_distance has {obstacles.size} values, expected none or width * height '
+                         f'= {cells}, all finite')
     kp = gpis.KernelParams(signal_variance=c, length_scale=ell, prior_mean=float(msg.prior_mean))
-    return gpis.posterior_from_data(geometry, kp, train_x.reshape(-1, 2), train_y, noise, float(msg.jitter),
-                                    train_grad_xy=grad_x.reshape(-1, 2), train_grad_axis=grad_axis,
-                                    train_grad=grad, train_grad_noise=grad_noise,
-                                    hyperparameters_optimized=bool(msg.hyperparameters_optimized))
+    posterior = gpis.posterior_from_data(geometry, kp, train_x.reshape(-1, 2), train_y, noise, float(msg.jitter),
+                                         train_grad_xy=grad_x.reshape(-1, 2), train_grad_axis=grad_axis,
+                                         train_grad=grad, train_grad_noise=grad_noise,
+                                         hyperparameters_optimized=bool(msg.hyperparameters_optimized))
+    if obstacles.size:
+        posterior = replace(posterior, obstacles=obstacles.reshape(geometry.shape))
+    return posterior
 

@@ -136,7 +136,8 @@ def mean_shape_contacts(posterior: Any, result: Any, jaw_width: float) -> np.nda
     jaws = np.concatenate([np.ravel(result.jaw1), np.ravel(result.jaw2)])
     if not bool(result.success) or not np.isfinite(jaws).all():
         return None
-    bank = SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
+    bank = SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None],
+                   obstacles=posterior.obstacles)
     con = contacts.find_contacts(bank, result.jaw1, result.jaw2, GripperParams(jaw_width=jaw_width),
                                  check_opening=False)
     if not bool(np.ravel(con.valid)[0]):

@@ -72,7 +72,7 @@ def test_pf_on_shipped_bags_equals_reference_bank() -> None:
     for name, post in bag_posteriors().items():
         ctx = PlanningContext(post, params)
         samples = evaluation_samples(ctx, np.random.default_rng(7))
-        ref = SdfBank(samples.bank.sdfs, post.geometry)
+        ref = SdfBank(samples.bank.sdfs, post.geometry, obstacles=samples.bank.obstacles)
         ref.padded = pad_extrapolated(samples.bank.sdfs, ref.pad, post.geometry.resolution)
         gy, gx = np.gradient(samples.bank.sdfs, post.geometry.resolution, axis=(1, 2))
         ref.gradient_grids = np.stack([gx, gy], axis=-1)

@@ -29,6 +29,7 @@ class GpisPosterior:
     * gradient training data: ``train_grad_xy`` (k, 2) m, ``train_grad_axis`` (k,) 0 = d/dx, 1 = d/dy,
       ``train_grad`` (k,) and ``train_grad_noise`` (k,) dimensionless
     * ``hyperparameter_fit`` / ``bound_hits``: the maximum-likelihood search and the bounds it sits on
+    * ``obstacles`` (H, W) float64 or None: signed distance (m) to the other objects in the grid
     """
 
     geometry: GridGeometry
@@ -55,6 +56,9 @@ class GpisPosterior:
     train_grad: np.ndarray = field(default_factory=lambda: np.zeros(0))
     train_grad_noise: np.ndarray = field(default_factory=lambda: np.zeros(0))
     hyperparameter_fit: HyperparameterFit | None = None  # the ML search behind ``params`` (None: fixed)
+    #: (H, W) signed distance (m) to the other objects seen in the grid, deterministic (None: none): not part of
+    #: the target's shape, but the world its jaws move in (:class:`~gpis_grasp_ros.core.sdf_bank.SdfBank`)
+    obstacles: np.ndarray | None = None
     #: L^T in float32 (r, H*W), made by the first float32 :meth:`sample_deviations` (``cov_factor`` is not
     #: changed after construction)
     _cov_factor_t32: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)

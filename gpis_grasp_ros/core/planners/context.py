@@ -24,7 +24,10 @@ from gpis_grasp_ros.core.sdf_bank import SdfBank
 
 
 class PlanningContext:
-    """Everything the planners precompute from a posterior (mean-shape bank, COM, ρ, σ_g, surface)."""
+    """Everything the planners precompute from a posterior (mean-shape bank, COM, ρ, σ_g, surface).
+
+    ``mean_bank`` is the world the jaws close in (the mean shape and the posterior's obstacles);
+    ``shape_bank`` the mean shape alone, on which candidates are placed."""
 
     def __init__(self, posterior: GpisPosterior, params: PlannerParams) -> None:
         self.posterior = posterior
@@ -33,7 +36,10 @@ class PlanningContext:
         self.res = self.geometry.resolution
         self.gripper = params.gripper
         self.sigma_g = self.gripper.sigma_g
-        self.mean_bank = SdfBank(posterior.mean, self.geometry, gradients=posterior.gradient)
+        self.mean_bank = SdfBank(posterior.mean, self.geometry, gradients=posterior.gradient,
+                                 obstacles=posterior.obstacles)
+        self.shape_bank = self.mean_bank if posterior.obstacles is None else SdfBank(
+            posterior.mean, self.geometry, gradients=posterior.gradient)
         self.com = posterior.center_of_mass()
         self.rho = torque_scale(posterior.mean, self.geometry, self.com)
         self.variance = np.asarray(posterior.variance, dtype=np.float64)  # m²

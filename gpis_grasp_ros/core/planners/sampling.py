@@ -41,7 +41,7 @@ def sample_heuristic_grasps(ctx: PlanningContext, n: int, rng: np.random.Generat
     if ctx.surface.shape[0] == 0 or n <= 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
     p = surface_sample(ctx, n, rng)
-    normal = ctx.mean_bank.normals_at(p)
+    normal = ctx.shape_bank.normals_at(p)
     to_com = ctx.com - p
     dist = np.linalg.norm(to_com, axis=1, keepdims=True)
     to_com = np.where(dist > 1e-9, to_com / np.where(dist > 1e-9, dist, 1.0), normal)
@@ -59,7 +59,7 @@ def sample_heuristic_grasps(ctx: PlanningContext, n: int, rng: np.random.Generat
         if checkpoint is not None:
             checkpoint()
         b = a + 1024
-        vals[a:b] = ctx.mean_bank.values_cells(uv[a:b, 0, None] + t[None] * u[a:b, 0, None],
+        vals[a:b] = ctx.shape_bank.values_cells(uv[a:b, 0, None] + t[None] * u[a:b, 0, None],
                                                uv[a:b, 1, None] + t[None] * u[a:b, 1, None])
     neg = vals < 0
     has = neg.any(axis=1)
@@ -79,13 +79,13 @@ def surface_sample(ctx: PlanningContext, n: int, rng: np.random.Generator) -> np
     distribution over the contour rather than a handful of discrete edge points.
     """
     p = ctx.surface[rng.integers(ctx.surface.shape[0], size=n)]
-    normal = ctx.mean_bank.normals_at(p)
+    normal = ctx.shape_bank.normals_at(p)
     tangent = np.stack([-normal[:, 1], normal[:, 0]], axis=1)
     p = p + rng.uniform(-0.5, 0.5, (n, 1)) * ctx.res * tangent
     for _ in range(2):
-        grad = ctx.mean_bank.gradients_at(p)
+        grad = ctx.shape_bank.gradients_at(p)
         g2 = np.sum(grad * grad, axis=1)
-        step = np.where(g2 > 1e-6, ctx.mean_bank.values(p) / np.maximum(g2, 1e-6), 0.0)
+        step = np.where(g2 > 1e-6, ctx.shape_bank.values(p) / np.maximum(g2, 1e-6), 0.0)
         p = p - np.clip(step, -ctx.res, ctx.res)[:, None] * grad
     return p
 

@@ -251,6 +251,7 @@ class Target(NamedTuple):
     body_height: float  # m, a clear body's prism height (0 = not a clear body)
     clear_target: bool  # the target is a clear body: its footprint is its prism's
     contact_px: np.ndarray  # (H, W) bool, other objects' pixels in contact with it (:func:`~.objects.in_contact`)
+    others_px: np.ndarray  # (H, W) bool, the other objects' pixels seen in depth above the table (kept objects)
 
 
 def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: Measurement, ev: Evidence,
@@ -294,4 +295,8 @@ def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: M
         target_px = target_px & ~feet.off_hull
         target_xy = foot_xy[target_px]
     contact_px = in_contact(objects.raster, px_labels, foot_xy, target) & ~target_px
-    return Target(target_px, target_xy, occ, p_c, body_height, clear_target, contact_px)
+    # the other objects as obstacles: where the sensor measured their surface (a deterministic solid; their
+    # colour-only or no-return parts - a clear neighbour's, or the target's own detached specular fringe - are
+    # not measured solids and stay what the target's grid makes of them)
+    others_px = np.isin(px_labels, objects.kept) & (px_labels != target) & ~target_px & valid & (p_d > 0.5)
+    return Target(target_px, target_xy, occ, p_c, body_height, clear_target, contact_px, others_px)

@@ -205,6 +205,7 @@ class SensingResult:
     #                                       unmeasured table (:func:`occlusion_shadow_pixels`)
     clear_body: np.ndarray | None = None  # (M, M) bool, a clear body's prism cells (object from colour/holes only)
     seen_behind: np.ndarray | None = None  # (M, M) bool, the table seen through a clear body
+    obstacles: np.ndarray | None = None  # (M, M) bool, cells mostly another object: where no jaw can be
 
     @property
     def sdf(self) -> np.ndarray:

@@ -184,6 +184,7 @@ class Cells(NamedTuple):
     body: np.ndarray  # a clear body's prism cells
     behind: np.ndarray  # the table seen through a clear body
     contact: np.ndarray  # cells mostly another object in contact with the target (table not seen)
+    obstacle: np.ndarray  # cells mostly another object (any, in contact or not): where a jaw cannot be
     body_alternatives: tuple[np.ndarray, ...] = ()  # its prism cells under the other plausible heights
 
 
@@ -217,17 +218,18 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     wt = wt_box[vs - box[0].start, us - box[1].start]
     seen_in_depth = target_px & valid & (p_d > 0.5)
     contact_px = target.contact_px.astype(np.float64)
+    others_px = target.others_px.astype(np.float64)
     vp = valid_px[vs, us]
     sums = [np.bincount(cell, weights=wt * v, minlength=m * m)
             for v in (np.ones(vs.size), occ_t[vs, us], p_d[vs, us] * vp, p_c[vs, us] * vp, vp,
                       miss_t[vs, us].astype(np.float64), np.where(valid[vs, us], var_z[vs, us], 0.0),
-                      seen_in_depth[vs, us].astype(np.float64), contact_px[vs, us])]
-    n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_seen, s_contact = (s.reshape(m, m) for s in sums)
+                      seen_in_depth[vs, us].astype(np.float64), contact_px[vs, us], others_px[vs, us])]
+    n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_seen, s_contact, s_others = (s.reshape(m, m) for s in sums)
     depth_seen_cell = s_seen > 0.5 * np.maximum(n_inf, 1e-12)  # mostly the target seen in depth (before any fill)
 
     # cells between the feet of neighbouring pixels (a grid finer than the pixels' footprint on the
     # table): the mean of their observed 8-neighbours, if at least 3, for as many cells as a footprint spans
-    stats = [s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_contact]
+    stats = [s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_contact, s_others]
     kernel3 = np.ones((3, 3), np.float32)
     hidden = _hidden_cells(geometry, intrinsics, foot_xy, height, valid & (np.nan_to_num(height) > h_thr),
                            max(1.5 * res, 2.0 * footprint))  # behind an object: not interpolated
@@ -266,6 +268,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
         s_valid[r2, c2], s_miss[r2, c2] = valid_px[v2, u2], miss_t[v2, u2]
         s_var[r2, c2] = np.where(valid[v2, u2], var_z[v2, u2], 0.0)
         s_contact[r2, c2] = contact_px[v2, u2]
+        s_others[r2, c2] = others_px[v2, u2]
     observed = n_inf > 0
     n_safe = np.maximum(n_inf, 1.0)
     # the part of a cell hidden behind an object is table, like a wholly occluded cell (_hidden_fraction)
@@ -295,5 +298,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
         if params.clear_body_height_m <= 0:  # the height from a prior: its footprint under the other heights
             alternatives = prism_alternatives(geometry, target_px, fit.table, intrinsics, target.body_height,
                                               depth_seen_cell, observed, missing)
+    # the other objects are where no jaw can be: cells mostly their pixels and not the target (nor its body)
+    obstacle = observed & (s_others / n_safe > 0.5) & (occupancy < 0.5) & ~body
     return Cells(geometry, row, col, in_grid, informative, observed, occluded, occupancy, missing, miss_c,
-                 disagreement, depth_var, body, behind, contact, alternatives)
+                 disagreement, depth_var, body, behind, contact, obstacle, alternatives)

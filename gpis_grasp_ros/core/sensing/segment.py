@@ -68,4 +68,5 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         occupancy_px=target.occ, noise_px=noise_px,
         disagreement_px=rho, bbox_px=(int(us.min()), int(vs.min()), int(us.max()), int(vs.max())),
         intrinsics=intrinsics, object_height=object_height(meas.height, target_px & valid & (ev.p_d > 0.5)),
-        seen_through_px=through_px, shadow_px=shadow_px, clear_body=cells.body, seen_behind=cells.behind)
+        seen_through_px=through_px, shadow_px=shadow_px, clear_body=cells.body, seen_behind=cells.behind,
+        obstacles=cells.obstacle)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import sys
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -147,6 +147,7 @@ class GpisNode(GuardedNode):
         self._noise: FloatGrid | None = None
         self._last_pair = None
         self._top: PointStamped | None = None
+        self._obstacles: OccupancyGrid | None = None
         self._published: tuple[gpis.GpisPosterior, Any, float] | None = None  # last model, its header, its height
         #: the last published posterior's hyperparameter fit (None: hyperparameters fixed)
         self.last_fit: gpis.HyperparameterFit | None = None
@@ -159,6 +160,9 @@ class GpisNode(GuardedNode):
                                  callback_group=inputs)
         self.create_subscription(FloatGrid, 'object/noise_map', guarded(self, 'object/noise_map', self._on_noise),
                                  LATCHED_QOS, callback_group=inputs)
+        self.create_subscription(OccupancyGrid, 'object/obstacles',
+                                 guarded(self, 'object/obstacles', self._on_obstacles), LATCHED_QOS,
+                                 callback_group=inputs)
         self.model_pub = self.create_publisher(GpisModel, 'gpis/model', LATCHED_QOS)
         self.mean_pub = self.create_publisher(FloatGrid, 'gpis/mean', LATCHED_QOS)
         self.var_pub = self.create_publisher(FloatGrid, 'gpis/variance', LATCHED_QOS)
@@ -166,7 +170,7 @@ class GpisNode(GuardedNode):
         self.mean_map_pub = self.create_publisher(OccupancyGrid, 'gpis/mean_map', LATCHED_QOS)
         self.var_map_pub = self.create_publisher(OccupancyGrid, 'gpis/variance_map', LATCHED_QOS)
         self.status_pub = self.create_publisher(String, 'gpis/status', LATCHED_QOS)
-        log_startup(self, ['object/occupancy', 'object/noise_map', 'object/top'],
+        log_startup(self, ['object/occupancy', 'object/noise_map', 'object/obstacles', 'object/top'],
                     ['gpis/model', 'gpis/mean', 'gpis/variance', 'gpis/blur', 'gpis/mean_map', 'gpis/variance_map',
                      'gpis/status'],
                     ['optimize_hyperparameters', 'prior_mean', 'blur_samples', 'stamp_tolerance', 'max_grid_cells'])
@@ -216,27 +220,35 @@ class GpisNode(GuardedNode):
             return
         with self._lock:
             self._top = msg
-        self._complete_height()
+        self._complete_model()
 
-    def _complete_height(self) -> None:
-        """Re-publish the last model with its object height when it went out as unknown (0) and the matching
-        ``object/top`` is here now (it arrived after the fit, or while the model was being published)."""
+    def _complete_model(self) -> None:
+        """Re-publish the last model when it went out without what arrived since for its frame: the object height
+        (it went out as unknown, 0, and the matching ``object/top`` is here now) or the obstacles (none went out
+        and the matching ``object/obstacles`` holds some) - they arrived after the fit, or while it was
+        published."""
         with self._lock:
             last = self._published
-        if last is None or last[2] > 0.0:
+        if last is None:
             return
-        posterior, header, _ = last
-        height = self.object_height(header, posterior.geometry, self.config.stamp_tolerance)
-        if height <= 0.0:
+        posterior, header, height = last
+        tolerance = self.config.stamp_tolerance
+        new_height = height if height > 0.0 else self.object_height(header, posterior.geometry, tolerance)
+        obstacles = None if posterior.obstacles is not None else self.obstacles(header, posterior.geometry,
+                                                                                  tolerance)
+        if new_height == height and obstacles is None:
             return
+        if obstacles is not None:
+            posterior = replace(posterior, obstacles=obstacles)
         with self._lock:
-            if self._published is not last:  # a newer model went out meanwhile: it carries its own height
+            if self._published is not last:  # a newer model went out meanwhile: it carries its own
                 return
-            self._published = (posterior, header, height)
+            self._published = (posterior, header, new_height)
         self.model_pub.publish(messages.posterior_to_gpis_model(posterior, header, conversions.RclpyFactory(),
-                                                                object_height=height))
-        self.get_logger().info(f'object/top arrived after the fit: gpis/model re-published with object height '
-                               f'{height * 1000:.1f} mm')
+                                                                object_height=new_height))
+        what = ([f'object height {new_height * 1000:.1f} mm'] if new_height != height else []) + (
+            [f'{int((obstacles < 0).sum())} obstacle cells'] if obstacles is not None else [])
+        self.get_logger().info(f'inputs arrived after the fit: gpis/model re-published with {" and ".join(what)}')
 
     def object_height(self, header, geometry, tolerance_s: float) -> float:
         """Height (m) above the grid's table plane of the ``object/top`` point matching ``header`` (stamp within
@@ -252,6 +264,31 @@ class GpisNode(GuardedNode):
         except ValueError as exc:
             self.reject(f'ignoring object/top: {exc}; object height unknown')
             return 0.0
+
+    def _on_obstacles(self, msg: OccupancyGrid) -> None:
+        try:
+            validation.check_occupancy_grid(msg, self.config.limits)
+        except ValueError as exc:
+            self.reject(f'ignoring object/obstacles: {exc}')
+            return
+        with self._lock:
+            self._obstacles = msg
+        self._complete_model()
+
+    def obstacles(self, header, geometry, tolerance_s: float) -> np.ndarray | None:
+        """Signed distance (m) to the other objects of the ``object/obstacles`` grid matching ``header`` (stamp
+        within ``tolerance_s``, same frame and grid); None without one (or without any obstacle cell)."""
+        with self._lock:
+            msg = self._obstacles
+        if msg is None or msg.header.frame_id != header.frame_id or abs(
+                messages.stamp_to_ns(msg.header.stamp) - messages.stamp_to_ns(header.stamp)) > tolerance_s * 1e9:
+            return None
+        grid, obstacle_geometry = messages.occupancy_grid_to_numpy(msg)
+        differs = grid_mismatch(geometry, obstacle_geometry)
+        if differs is not None:
+            self.reject(f'ignoring object/obstacles: its grid differs from the occupancy\'s ({differs})')
+            return None
+        return pipeline.obstacle_distance(grid, geometry)
 
     def _on_noise(self, msg: FloatGrid) -> None:
         try:
@@ -311,6 +348,9 @@ class GpisNode(GuardedNode):
         factory = conversions.RclpyFactory()
         g = posterior.geometry
         height = self.object_height(header, g, config.stamp_tolerance)
+        obstacles = self.obstacles(header, g, config.stamp_tolerance)
+        if obstacles is not None:
+            posterior = replace(posterior, obstacles=obstacles)
         self.model_pub.publish(messages.posterior_to_gpis_model(posterior, header, factory, object_height=height))
         self.mean_pub.publish(messages.numpy_to_float_grid(factory, posterior.mean, g, header, 'm'))
         self.var_pub.publish(messages.numpy_to_float_grid(factory, posterior.variance, g, header, 'm^2'))
@@ -333,7 +373,7 @@ class GpisNode(GuardedNode):
             self._published = (posterior, header, height)
             self.last_fit = posterior.hyperparameter_fit
         self.status_pub.publish(String(data=f'ok: {summary}'))
-        self._complete_height()
+        self._complete_model()
 
 
 def main(args: list[str] | None = None) -> int:

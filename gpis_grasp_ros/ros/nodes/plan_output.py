@@ -83,7 +83,8 @@ class GraspVisuals:
         posterior, header = job.posterior, job.model.header
         c = job.config
         jaw_width = c.gripper.jaw_width
-        bank = SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None])
+        bank = SdfBank(posterior.mean[None], posterior.geometry, posterior.gradient[None],
+                       obstacles=posterior.obstacles)
         con = contacts.find_contacts(bank, result.jaw1, result.jaw2, GripperParams(jaw_width=jaw_width),
                                      check_opening=False)
         touches = np.stack([np.reshape(con.c1, (-1, 2))[0], np.reshape(con.c2, (-1, 2))[0]])

@@ -238,6 +238,7 @@ class SegmentationNode(GuardedNode):
                                      callback_group=self._inputs)
         self.occupancy_pub = self.create_publisher(OccupancyGrid, 'object/occupancy', LATCHED_QOS)
         self.noise_pub = self.create_publisher(FloatGrid, 'object/noise_map', LATCHED_QOS)
+        self.obstacles_pub = self.create_publisher(OccupancyGrid, 'object/obstacles', LATCHED_QOS)
         #: the target's top: grid centre at the measured object height (published before the grids)
         self.top_pub = self.create_publisher(PointStamped, 'object/top', LATCHED_QOS)
         #: latched outcome of the last segmentation: 'ok: ...' or 'failed: <reason>' (nothing published then)
@@ -245,7 +246,8 @@ class SegmentationNode(GuardedNode):
         self.create_timer(0.05, self._on_burst_timer, callback_group=self._inputs)
         topics = (['camera/depth/points'] if self.input_mode == 'cloud' else
                   ['camera/rgb/image_raw', 'camera/depth/image_raw', 'camera/rgb/camera_info'])
-        log_startup(self, topics, ['object/occupancy', 'object/noise_map', 'object/top', 'segmentation/status'],
+        log_startup(self, topics, ['object/occupancy', 'object/noise_map', 'object/obstacles', 'object/top',
+                                   'segmentation/status'],
                     ['input_mode', 'input_reliability', 'frames_to_average', 'min_frames', 'burst_timeout',
                      'grid_size', 'target', 'sensor_model'])
 
@@ -421,6 +423,9 @@ class SegmentationNode(GuardedNode):
         centre = np.array([geometry.origin_x, geometry.origin_y]) + 0.5 * np.array(geometry.size_m)
         self.top_pub.publish(messages.point_stamped(factory, geometry.to_sensor(centre, result.object_height),
                                                     header_msg))
+        # before the target's grids, so that gpis_node has the obstacles when it fits
+        self.obstacles_pub.publish(messages.numpy_to_occupancy_grid(
+            factory, pipeline.publishable_obstacles(result), geometry, header_msg))
         self.occupancy_pub.publish(messages.numpy_to_occupancy_grid(factory, occ, geometry, header_msg))
         self.noise_pub.publish(messages.numpy_to_float_grid(factory, noise, geometry, header_msg, 'm^2'))
         summary = (f'published {result.geometry.height}x{result.geometry.width} occupancy and noise map from '

@@ -70,13 +70,13 @@ def fit_scene(scene: Any, params: Any, relax_opening: bool = False) -> SceneFit:
     """The GPIS posterior of a scene exactly as the nodes build it (segmentation → the published grids →
     GPIS fit; :func:`~gpis_grasp_ros.data.bags.posterior_from_scene` in two timed stages). Raises
     ValueError when segmentation or the GPIS rejects the scene."""
-    from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
+    from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids, publishable_obstacles
 
     t0 = time.perf_counter()
     sensing, refusal = segment_scene(scene, params, relax_opening)
     occ, noise, geometry = publishable_grids(sensing)
     t1 = time.perf_counter()
-    posterior = posterior_from_grids(occ, noise, geometry)
+    posterior = posterior_from_grids(occ, noise, geometry, obstacles=publishable_obstacles(sensing))
     return SceneFit(posterior, sensing, geometry, refusal, t1 - t0, time.perf_counter() - t1)
 
 

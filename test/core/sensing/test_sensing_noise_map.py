@@ -16,7 +16,7 @@ def _cells(occupancy: np.ndarray, disagreement: np.ndarray) -> Cells:
     z = np.zeros((m, m), bool)
     px = np.full((2, 2), np.nan)
     return Cells(make_geometry(m, 0.005), px, px, np.zeros((2, 2), bool), np.zeros((2, 2), bool), ~z, z, occupancy,
-                 z, np.zeros((m, m)), disagreement, np.full((m, m), 1e-6), z, z, z)
+                 z, np.zeros((m, m)), disagreement, np.full((m, m), 1e-6), z, z, z, z)
 
 
 def test_certain_cells_are_all_trained_with_their_depth_variance():
