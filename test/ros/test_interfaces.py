@@ -68,7 +68,7 @@ def test_gpis_model_round_trip_and_matches_rclpy(typestore):
         train_grad_noise_variance=rng.random(2),
         mean=rng.normal(size=cells), variance=rng.random(cells),
         center_of_mass=t['geometry_msgs/msg/Point'](x=0.11, y=0.21, z=0.69), center_of_mass_std=0.001,
-        object_height=0.033)
+        object_height=0.033, obstacle_distance=rng.normal(size=cells))
     raw = ts.serialize_cdr(msg, 'gpis_grasp_interfaces/msg/GpisModel')
     back = ts.deserialize_cdr(raw, 'gpis_grasp_interfaces/msg/GpisModel')
     np.testing.assert_array_equal(back.train_x, msg.train_x)
@@ -83,6 +83,7 @@ def test_gpis_model_round_trip_and_matches_rclpy(typestore):
     assert live.header.frame_id == 'cam'
     np.testing.assert_array_equal(np.asarray(live.mean), msg.mean)
     np.testing.assert_array_equal(np.asarray(live.train_noise_variance), msg.train_noise_variance)
+    np.testing.assert_array_equal(np.asarray(live.obstacle_distance), msg.obstacle_distance)
     assert live.center_of_mass.x == pytest.approx(0.11) and live.object_height == 0.033
     again = ts.deserialize_cdr(np.frombuffer(serialize_message(live), dtype=np.uint8),
                                'gpis_grasp_interfaces/msg/GpisModel')
