@@ -42,10 +42,12 @@ class BagScene:
     true_sdf: np.ndarray | None = None  # m, positive outside
     true_geometry: GridGeometry | None = None
     true_center_of_mass: np.ndarray | None = None  # (x, y) m in true_geometry's grid (table) frame
+    true_obstacles: np.ndarray | None = None  # m on true_geometry: signed distance to the other objects (None: none)
 
 
 #: The topics :func:`load_bag` reads.
-SCENE_TOPICS = (TOPICS['points'], TOPICS['rgb'], TOPICS['depth'], TOPICS['rgb_info'], TOPICS['sdf'], TOPICS['com'])
+SCENE_TOPICS = (TOPICS['points'], TOPICS['rgb'], TOPICS['depth'], TOPICS['rgb_info'], TOPICS['sdf'], TOPICS['com'],
+                TOPICS['obstacles'])
 
 
 def load_bag(path: str | os.PathLike[str], frames: int = 10, source: str = 'cloud') -> BagScene:
@@ -72,6 +74,8 @@ def scene_from_messages(msgs: Iterable[tuple[str, str, int, Any]], frames: int =
     for topic, _type, _t, msg in msgs:
         if topic == TOPICS['sdf']:
             scene_gt['sdf'], scene_gt['geometry'] = messages.float_grid_to_numpy(msg)
+        elif topic == TOPICS['obstacles']:
+            scene_gt['obstacles'], scene_gt['obstacles_geometry'] = messages.float_grid_to_numpy(msg)
         elif topic == TOPICS['com']:
             scene_gt['com'] = messages.point_stamped_to_numpy(msg)  # sensor frame, 3D
         elif source == 'cloud' and topic == TOPICS['points'] and len(clouds) < frames:
@@ -104,7 +108,12 @@ def scene_from_messages(msgs: Iterable[tuple[str, str, int, Any]], frames: int =
         com = scene_gt['geometry'].from_sensor(com)[0]
     elif com is not None:
         com = com[:2]
-    return BagScene(rgb, depth, intrinsics, frame_id, stamp, scene_gt.get('sdf'), scene_gt.get('geometry'), com)
+    obstacles = scene_gt.get('obstacles')
+    if obstacles is not None and (scene_gt.get('sdf') is None or obstacles.shape != scene_gt['sdf'].shape
+                                  or scene_gt['obstacles_geometry'] != scene_gt['geometry']):
+        raise ValueError(f"{path}: {TOPICS['obstacles']} is not on the grid of {TOPICS['sdf']}")
+    return BagScene(rgb, depth, intrinsics, frame_id, stamp, scene_gt.get('sdf'), scene_gt.get('geometry'), com,
+                    None if obstacles is None else obstacles.astype(np.float64))
 
 
 def posterior_from_scene(scene: BagScene, sensing_params: SensingParams = SensingParams(),

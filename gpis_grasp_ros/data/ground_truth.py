@@ -16,6 +16,13 @@ docs/ground-truth.md:
 4. the SDF is the exact signed distance to that polygon (positive outside), so its finite differences are
    the outline's normals and not a raster's.
 
+Every other labelled object whose footprint, built the same way, reaches the grid is an **obstacle** of the truth
+(another component of the mask, or a part of the target's component that a depth discontinuity separates from it:
+a touching object the mask merged): ``GroundTruth.obstacles`` holds the exact signed distance to the union of their
+footprints, and a simulated jaw may neither start in one nor close on one, as in the planner's world
+(:class:`~gpis_grasp_ros.core.sdf_bank.SdfBank`'s obstacles). Only what the mask labels is an obstacle (ClearGrasp
+labels its transparent objects alone), and only one of at least the segmentation's minimum object area.
+
 When the true depth is the capture's own depth, it is first registered to the mask: moved by the integer shift
 that best overlays the mask on the depth's above-table pixels (:func:`mask_registration`). A structured-light
 sensor's depth image is offset from the image its intrinsics and the label belong to by a few pixels; unmoved, the
@@ -34,7 +41,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from gpis_grasp_ros.core.grid import GridGeometry
-from gpis_grasp_ros.core.sensing import CameraIntrinsics, nearest_pixel
+from gpis_grasp_ros.core.sensing import CameraIntrinsics, SensingParams, nearest_pixel
 from gpis_grasp_ros.core.table_frame import TableFrame
 
 if TYPE_CHECKING:
@@ -50,6 +57,9 @@ JUMP_FLOOR_M = 0.005
 #: Largest label-to-depth misregistration searched (pixels, rows and columns): a structured-light sensor's depth is
 #: offset from its image by a few pixels (about 4 px measured on a Kinect, Smisek et al. 2011); twice that.
 MASK_REGISTRATION_RADIUS_PX = 8
+#: Smallest footprint (m^2) of another labelled object that is an obstacle of the truth: the segmentation's minimum
+#: object area (``SensingParams.min_object_area_m2``), so a label speck is judged as the perception treats a speck.
+OBSTACLE_MIN_AREA_M2 = SensingParams.min_object_area_m2
 #: Height (m) above the table from which a depth pixel sees an object when a mask is registered to the depth: the
 #: segmentation's depth-evidence floor (``SensingParams.height_threshold``), at least twice the table's RMS.
 MASK_REGISTRATION_HEIGHT_M = 0.003
@@ -66,6 +76,16 @@ class GroundTruth:
     outline: np.ndarray  # (K, 3) camera frame, on the table plane (m)
     table: TableFrame
     depth_shift_px: tuple[int, int] = (0, 0)  # (rows, columns) the true depth was moved to register it to the mask
+    #: (H, W) float32 signed distance (m) on ``geometry`` to the other labelled objects whose footprints reach the
+    #: grid (None: none does); not part of the target, but the world its jaws move in
+    obstacles: np.ndarray | None = None
+    #: footprint parts of other labelled objects (other mask components, and parts of the target's component that a
+    #: depth discontinuity separates from the target) that reach the grid; parts smaller than an object
+    #: (:data:`OBSTACLE_MIN_AREA_M2`) and components that could not be built (no usable true-depth return on their
+    #: mask, or under 10 pixels), both left out of ``obstacles``
+    obstacle_objects: int = 0
+    obstacles_small: int = 0
+    obstacles_unbuilt: int = 0
 
 
 def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.ndarray, target_px: tuple[float, float],
@@ -97,31 +117,68 @@ def ground_truth_from_mask(capture: Capture, mask: np.ndarray, true_depth: np.nd
         off = mask_registration(labels, depth, intr, table)
         shift = (-off[0], -off[1])
         depth = shifted(depth, *shift, fill=np.nan)
-    comp = _component(labels, target_px)
-    heights = _surface_heights(intr.rays(), comp, depth, table)
-    comp &= heights > -BELOW_TABLE_M  # points below the table are depth errors
-    if comp.sum() < 10:
-        raise ValueError('the target has fewer than 10 usable ground-truth points')
-    heights = np.where(comp, heights, np.nan)
-    z = _target_depth(depth, comp, table)
-    ext = _extend_to_silhouette(heights, comp)
-    quads = _pixel_quads(intr, comp, ext, table, _wall_jump(intr, z, table))
-    vs, us = np.nonzero(comp)
-    u, v = (int(round(c)) for c in target_px)
-    target_xy = quads[int(np.argmin((us - u) ** 2 + (vs - v) ** 2))].mean(axis=0)
-    step = resolution / 4.0
-    sigma = SMOOTHING_SIGMA_PIXELS * _pixel_footprint(intr, z, table)
-    outline_xy = _resample_closed(_smooth_closed(_union_outline(quads, step, target_xy), step, sigma),
-                                  resolution / 2.0)
+    _, components = cv2.connectedComponents(labels.astype(np.uint8), connectivity=8)
+    target_label = _component_label(components, target_px)
+    comp = components == target_label
+    try:
+        outline_xy, *beside = footprint_outlines(intr, comp, depth, table, resolution, target_px)
+    except ValueError as exc:
+        raise ValueError(f'the target has {exc}') from None
     lo = np.floor((outline_xy.min(axis=0) - margin) / resolution) * resolution
     hi = np.ceil((outline_xy.max(axis=0) + margin) / resolution) * resolution
     w, h = (int(round(c)) for c in (hi - lo) / resolution)
     geom = table.grid(float(lo[0]), float(lo[1]), resolution, w, h, frame_id)
-    sdf = polygon_sdf(outline_xy, geom.cell_centers())
+    centres = geom.cell_centers()
+    sdf = polygon_sdf(outline_xy, centres)
     inside = sdf < 0
+    parts, unbuilt = list(beside), 0  # the other parts of the target's component (touching objects), then ...
+    for label in range(1, int(components.max()) + 1):  # ... the other labelled objects
+        if label != target_label:
+            try:
+                parts += footprint_outlines(intr, components == label, depth, table, resolution)
+            except ValueError:
+                unbuilt += 1
+    obstacles, objects, small = None, 0, 0
+    for part in parts:
+        if abs(_signed_area(part)) < OBSTACLE_MIN_AREA_M2:
+            small += 1
+        elif np.all(part.max(axis=0) >= lo) and np.all(part.min(axis=0) <= hi):  # it reaches the grid
+            objects += 1
+            d = polygon_sdf(part, centres)
+            obstacles = d if obstacles is None else np.minimum(obstacles, d)
     return GroundTruth(sdf=sdf.astype(np.float32), occupancy=np.where(inside, 100, 0).astype(np.int8), geometry=geom,
                        center_of_mass=geom.to_sensor(polygon_centroid(outline_xy)),
-                       outline=geom.to_sensor(outline_xy), table=table, depth_shift_px=shift)
+                       outline=geom.to_sensor(outline_xy), table=table, depth_shift_px=shift,
+                       obstacles=None if obstacles is None else obstacles.astype(np.float32),
+                       obstacle_objects=objects, obstacles_small=small, obstacles_unbuilt=unbuilt)
+
+
+def footprint_outlines(intr: CameraIntrinsics, comp: np.ndarray, depth: np.ndarray, table: TableFrame,
+                       resolution: float, anchor_px: tuple[float, float] | None = None) -> list[np.ndarray]:
+    """Smoothed outlines (K, 2) (m, table frame, a vertex every ``resolution / 2``) of the footprint of one mask
+    component ``comp`` with the true ``depth`` (steps 1-4 of the module docstring), one per connected part (a
+    depth discontinuity separates touching objects of one component), largest first; with ``anchor_px`` (a pixel
+    on the object) the part holding it first (the largest if none does).
+
+    Raises:
+        ValueError: the component has no return of the true shape, or fewer than 10 usable points."""
+    heights = _surface_heights(intr.rays(), comp, depth, table)
+    comp = comp & (heights > -BELOW_TABLE_M)  # points below the table are depth errors
+    if comp.sum() < 10:
+        raise ValueError('fewer than 10 usable ground-truth points on its mask component')
+    heights = np.where(comp, heights, np.nan)
+    z = _target_depth(depth, comp, table)
+    ext = _extend_to_silhouette(heights, comp)
+    quads = _pixel_quads(intr, comp, ext, table, _wall_jump(intr, z, table))
+    anchor_xy = None
+    if anchor_px is not None:
+        vs, us = np.nonzero(comp)
+        u, v = (int(round(c)) for c in anchor_px)
+        anchor_xy = quads[int(np.argmin((us - u) ** 2 + (vs - v) ** 2))].mean(axis=0)
+    step = resolution / 4.0
+    sigma = SMOOTHING_SIGMA_PIXELS * _pixel_footprint(intr, z, table)
+    return [_resample_closed(_smooth_closed(part, step, sigma), resolution / 2.0)
+            for part in _union_outlines(quads, step, anchor_xy)]
 
 
 def mask_registration(mask: np.ndarray, depth: np.ndarray, intr: CameraIntrinsics, table: TableFrame,
@@ -195,12 +252,12 @@ def polygon_centroid(polygon: np.ndarray) -> np.ndarray:
     return ((p + q) * cross[:, None]).sum(axis=0) / (3.0 * cross.sum())
 
 
-def _component(mask: np.ndarray, target_px: tuple[float, float]) -> np.ndarray:
-    _, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+def _component_label(labels: np.ndarray, target_px: tuple[float, float]) -> int:
+    """The label (of ``cv2.connectedComponents``) of the mask component under ``target_px``."""
     u, v = (int(round(c)) for c in target_px)
     if not (0 <= v < labels.shape[0] and 0 <= u < labels.shape[1]) or labels[v, u] == 0:
         raise ValueError(f'target pixel ({u}, {v}) is not on the mask')
-    return labels == labels[v, u]
+    return int(labels[v, u])
 
 
 def _surface_heights(rays: np.ndarray, comp: np.ndarray, true_depth: np.ndarray, table: TableFrame) -> np.ndarray:
@@ -216,7 +273,7 @@ def _surface_heights(rays: np.ndarray, comp: np.ndarray, true_depth: np.ndarray,
     z = np.where(np.isfinite(true_depth) & (true_depth > 0), true_depth, np.nan)
     valid = comp & np.isfinite(z)
     if not valid.any():
-        raise ValueError('the target has no return of the true shape (--gt-depth) on its mask')
+        raise ValueError('no return of the true shape (--gt-depth) on its mask component')
     heights = np.where(valid, (rays * np.nan_to_num(z)[..., None]) @ table.n + table.offset_m, np.nan)
     vs, us = np.nonzero(comp & ~valid)
     near = nearest_pixel(valid)[1][vs, us]
@@ -268,10 +325,11 @@ def _pixel_quads(intr: CameraIntrinsics, comp: np.ndarray, ext: np.ndarray, tabl
     return table.to_table(rays * t[..., None])[0]
 
 
-def _union_outline(quads: np.ndarray, step: float, target_xy: np.ndarray) -> np.ndarray:
-    """Outer boundary (N, 2) (m, counter-clockwise in the table frame) of the connected part of the quads' union
-    that holds ``target_xy`` (the largest if none does), rasterised with cells of ``step`` m (OpenCV fills the
-    cells whose centre is within half a cell of the polygon: the contour through them is unbiased)."""
+def _union_outlines(quads: np.ndarray, step: float, target_xy: np.ndarray | None) -> list[np.ndarray]:
+    """Outer boundaries (N, 2) (m, counter-clockwise in the table frame) of the connected parts of the quads' union,
+    rasterised with cells of ``step`` m (OpenCV fills the cells whose centre is within half a cell of the polygon:
+    the contour through them is unbiased), largest first; the part that holds ``target_xy`` (the largest if none
+    does) first of all."""
     flat = quads.reshape(-1, 2)
     lo = flat.min(axis=0) - 4 * step
     w, h = (int(math.ceil(c)) + 8 for c in (flat.max(axis=0) - lo) / step)
@@ -280,13 +338,20 @@ def _union_outline(quads: np.ndarray, step: float, target_xy: np.ndarray) -> np.
     pts = np.round(((quads - lo) / step - 0.5) * (1 << shift)).astype(np.int32)
     cv2.fillPoly(raster, list(pts), 1, lineType=cv2.LINE_8, shift=shift)
     contours, _ = cv2.findContours(raster, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    tx, ty = (float(c) for c in (target_xy - lo) / step - 0.5)
-    holding = [c for c in contours if cv2.pointPolygonTest(c, (tx, ty), False) >= 0]
-    c = max(holding or contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
-    xy = lo + (c + 0.5) * step
-    if _signed_area(xy) < 0:
-        xy = xy[::-1]
-    return _resample_closed(xy, step)
+    chosen = sorted(contours, key=cv2.contourArea, reverse=True)
+    if target_xy is not None:
+        tx, ty = (float(c) for c in (target_xy - lo) / step - 0.5)
+        holding = [c for c in chosen if cv2.pointPolygonTest(c, (tx, ty), False) >= 0]
+        if holding:
+            first = max(holding, key=cv2.contourArea)
+            chosen = [first] + [c for c in chosen if c is not first]
+    out = []
+    for c in chosen:
+        xy = lo + (c.reshape(-1, 2).astype(np.float64) + 0.5) * step
+        if _signed_area(xy) < 0:
+            xy = xy[::-1]
+        out.append(_resample_closed(xy, step))
+    return out
 
 
 def _smooth_closed(xy: np.ndarray, step: float, sigma_m: float) -> np.ndarray:

@@ -333,6 +333,9 @@ def capture_messages(capture: Capture, f: Any, stamp_ns: int = DEFAULT_START_NS,
                     messages.numpy_to_float_grid(f, truth.sdf, truth.geometry, hdr, 'm')))
         out.append((TOPICS['com'], TOPIC_TYPES[TOPICS['com']], stamp_ns,
                     messages.point_stamped(f, truth.center_of_mass, hdr)))
+        if truth.obstacles is not None:
+            out.append((TOPICS['obstacles'], TOPIC_TYPES[TOPICS['obstacles']], stamp_ns,
+                        messages.numpy_to_float_grid(f, truth.obstacles, truth.geometry, hdr, 'm')))
         pts = [f.new('geometry_msgs/msg/Point32', x=float(x), y=float(y), z=float(z))
                for x, y, z in truth.outline.astype(np.float32)]
         out.append((TOPICS['outline'], TOPIC_TYPES[TOPICS['outline']], stamp_ns,

@@ -16,6 +16,7 @@ TOPICS: dict[str, str] = {
     'sdf': '/ground_truth/sdf',
     'com': '/ground_truth/center_of_mass',
     'outline': '/ground_truth/outline',
+    'obstacles': '/ground_truth/obstacles',
 }
 TOPIC_TYPES: dict[str, str] = {
     TOPICS['points']: 'sensor_msgs/msg/PointCloud2',
@@ -27,7 +28,9 @@ TOPIC_TYPES: dict[str, str] = {
     TOPICS['sdf']: 'gpis_grasp_interfaces/msg/FloatGrid',
     TOPICS['com']: 'geometry_msgs/msg/PointStamped',
     TOPICS['outline']: 'geometry_msgs/msg/PolygonStamped',
+    TOPICS['obstacles']: 'gpis_grasp_interfaces/msg/FloatGrid',
 }
+#: The simulator's ground truth (a real capture's truth may add ``obstacles``, the other labelled objects).
 GROUND_TRUTH_TOPICS: tuple[str, ...] = (TOPICS['occupancy'], TOPICS['sdf'], TOPICS['com'], TOPICS['outline'])
 CAMERA_TOPICS: tuple[str, ...] = (TOPICS['rgb_info'], TOPICS['rgb'], TOPICS['depth_info'], TOPICS['depth'],
                                   TOPICS['points'])

@@ -498,7 +498,8 @@ def render_entry(entry: dict[str, Any], frames: int | None = None) -> BagScene:
                     depth_frames=np.stack([f.depth for f in rendered]).astype(np.float64),
                     intrinsics=CameraIntrinsics(*scene.intrinsics), frame_id=FRAME_ID,
                     stamp_ns=rendered[-1].stamp_ns, true_sdf=gt.sdf.astype(np.float64), true_geometry=gt.geometry,
-                    true_center_of_mass=true_com_xy(gt.center_of_mass, gt.geometry))
+                    true_center_of_mass=true_com_xy(gt.center_of_mass, gt.geometry),
+                    true_obstacles=None if gt.obstacles is None else gt.obstacles.astype(np.float64))
 
 
 def true_com_xy(center_of_mass: np.ndarray, geometry: GridGeometry) -> np.ndarray:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from scipy.ndimage import label as components
 from scipy.spatial import cKDTree
 
 from gpis_grasp_ros.core.sdf import sdf_gradient
@@ -252,6 +253,65 @@ def test_a_flat_label_is_not_moved():
     assert label.sum() > 500
     assert gt.mask_registration(label, depth, PRIMESENSE, prism.table) == (0, 0)
 
+
+
+@pytest.mark.parametrize('camera, tilt, distance, step', [(PRIMESENSE, 13.0, 0.7, 0.0), (D435, 50.0, 0.7, 0.001)],
+                         ids=['primesense-13', 'd435-50'])
+def test_other_labelled_objects_are_the_truths_obstacles(camera, tilt, distance, step):
+    """A labelled neighbour 15 mm from the target is an obstacle of the truth: the obstacle distance's negative part
+    is the neighbour's analytic footprint (IoU >= 0.9 on the grid's cells it reaches) and it is positive on the
+    target; the target's own truth is the one built with the neighbour unlabelled, bit for bit. A labelled speck
+    under the minimum object area is not an obstacle, nor is a labelled object beyond the grid."""
+    a = Prism('ellipse', 0.02, 0.02, 0.04, 0.0, camera, tilt, distance, offset=(-0.03, 0.0), depth_step=step)
+    b = Prism('box', 0.012, 0.025, 0.03, 0.0, camera, tilt, distance, offset=(0.017, 0.0), depth_step=step)
+    speck = Prism('ellipse', 0.003, 0.003, 0.01, 0.0, camera, tilt, distance, offset=(-0.075, 0.0), depth_step=step)
+    far = Prism('box', 0.02, 0.02, 0.03, 0.0, camera, tilt, distance, offset=(-0.03, -0.11), depth_step=step)
+    renders = [p.render() for p in (a, b, speck, far)]
+    depth = np.minimum.reduce([d for d, _ in renders])
+    visible = [m & (d <= depth) for d, m in renders]
+    capture = ri.Capture(np.zeros((*depth.shape, 3), np.uint8), depth, camera)
+    v, u = np.nonzero(visible[0])
+    k = int(np.argmin((u - u.mean()) ** 2 + (v - v.mean()) ** 2))
+    true_depth = np.where(np.logical_or.reduce(visible), depth, np.nan)
+    alone = ri.ground_truth_from_mask(capture, visible[0], true_depth, (u[k], v[k]), a.table)
+    assert alone.obstacles is None and alone.obstacle_objects == 0
+    truth = ri.ground_truth_from_mask(capture, np.logical_or.reduce(visible), true_depth, (u[k], v[k]), a.table)
+    assert np.array_equal(truth.sdf, alone.sdf) and truth.geometry == alone.geometry
+    assert (truth.obstacle_objects, truth.obstacles_small, truth.obstacles_unbuilt) == (1, 1, 0)
+    centres = truth.geometry.cell_centers()
+    expected, got = b.inside(centres), truth.obstacles < 0
+    assert expected.sum() > 300
+    assert (expected & got).sum() / (expected | got).sum() >= 0.9
+    assert truth.obstacles[truth.sdf < 0].min() > 0.005  # the target is no obstacle of its own
+    inside_b = b.inside(centres)
+    assert truth.obstacles[inside_b].min() < -0.008  # the neighbour's middle is deep inside it (half width 12 mm)
+
+
+
+def test_an_object_the_mask_merged_with_the_target_is_an_obstacle():
+    """A 15 mm box 6 mm in front of the 45 mm tall target on the table: at 13 deg the target's image touches it, so
+    the label has one component for both; the depth discontinuity between them separates their footprints. The part
+    holding the target pixel is the truth (IoU 0.94 with the target's analytic footprint), the other part an
+    obstacle (IoU 0.91 with its box, whose far side the target hides)."""
+    a = Prism('box', 0.02, 0.015, 0.045, 0.0, PRIMESENSE, 13.0, 0.7, offset=(0.0, 0.0))
+    b = Prism('box', 0.02, 0.015, 0.015, 0.0, PRIMESENSE, 13.0, 0.7, offset=(0.0, -0.036))
+    (da, ma), (db, mb) = a.render(), b.render()
+    depth = np.minimum(da, db)
+    mask = (ma & (da <= depth)) | (mb & (db <= depth))
+    assert components(mask, structure=np.ones((3, 3)))[1] == 1  # one component in the label
+    capture = ri.Capture(np.zeros((*depth.shape, 3), np.uint8), depth, PRIMESENSE)
+    v, u = np.nonzero(ma & (da <= depth))
+    k = int(np.argmin((u - u.mean()) ** 2 + (v - v.mean()) ** 2))
+    truth = ri.ground_truth_from_mask(capture, mask, np.where(mask, depth, np.nan), (u[k], v[k]), a.table)
+    centres = truth.geometry.cell_centers()
+
+    def iou(x: np.ndarray, y: np.ndarray) -> float:
+        return float((x & y).sum() / (x | y).sum())
+
+    assert truth.obstacle_objects == 1
+    assert iou(truth.sdf < 0, a.inside(centres)) >= 0.93
+    assert iou(truth.obstacles < 0, b.inside(centres)) >= 0.9
+    assert truth.obstacles[a.inside(centres)].min() > 0.003  # the target's cells are not the obstacle's
 
 if __name__ == '__main__':
     for case in CASES:

@@ -196,3 +196,43 @@ def test_cli_ground_truth_keeps_the_full_resolution_of_a_scaled_capture(tmp_path
     assert edge.sum() > 300
     assert np.percentile(error_deg, 90) < 22.0
     assert ((sdf < 0) & (box_sdf < 0)).sum() / ((sdf < 0) | (box_sdf < 0)).sum() > 0.94
+
+
+def test_the_truths_obstacles_travel_in_the_bag(tmp_path):
+    """A capture whose mask labels a second box beside the target: ``import-rgbd`` writes the truth's obstacle
+    distance (``/ground_truth/obstacles``, on the SDF's grid) and ``load_bag`` gives back the values
+    ``import_capture`` built (float32 on the wire), negative inside the second box only; an obstacle grid that is
+    not on the SDF's grid is refused with the reason."""
+    from dataclasses import replace
+
+    from gpis_grasp_ros.data import bagio, messages
+    from gpis_grasp_ros.data.bags import scene_from_messages
+
+    second = Box(0.062, 0.01, 0.012, 0.02, 0.03, rgb=(200.0, 60.0, 40.0))  # 20 mm beside the target
+    scene = TiltedScene(45.0, distance_m=0.6, boxes=[BOX, second], width=480, height=360, focal_px=450.0)
+    depth, rgb, label = scene.render()
+    u, v = _write_capture(tmp_path, scene, rgb, depth, label)
+    cv2.imwrite(str(tmp_path / 'mask.png'), np.where(label > 0, 255, 0).astype(np.uint8))  # both boxes labelled
+    files = dict(rgb=tmp_path / 'rgb.png', depth=tmp_path / 'depth.png', intrinsics=tmp_path / 'cam.yaml')
+    imported = ri.import_capture(**files, gt_mask=tmp_path / 'mask.png', gt_depth=tmp_path / 'true-depth.png',
+                                 target_px=(u, v))
+    truth = imported.truth
+    assert truth.obstacles is not None and truth.obstacle_objects == 1
+    g = truth.geometry
+    in_second = np.abs(second.local_xy(scene.table_xy(g.to_sensor(g.cell_centers())))).max(axis=-1) <= 0.008
+    assert in_second.sum() > 100 and (truth.obstacles[in_second] < 0).all()
+    assert (truth.obstacles[truth.sdf < 0] > 0).all()
+    bag = tmp_path / 'two.mcap'
+    assert import_rgbd.main(['--rgb', str(files['rgb']), '--depth', str(files['depth']), '--intrinsics',
+                             str(files['intrinsics']), str(bag), '--gt-mask', str(tmp_path / 'mask.png'),
+                             '--gt-depth', str(tmp_path / 'true-depth.png'), '--target-pixel', str(u), str(v)]) == 0
+    loaded = load_bag(bag)
+    assert loaded.true_geometry.shape == g.shape
+    np.testing.assert_array_equal(loaded.true_obstacles, truth.obstacles.astype(np.float64))
+    f = messages.RosbagsFactory(bagio.get_typestore())
+    msgs = ri.capture_messages(imported.capture, f, truth=imported.truth)
+    moved = replace(g, origin_x=g.origin_x + 0.001)
+    bad = [(t, ty, ns, messages.numpy_to_float_grid(f, truth.obstacles, moved, m.header, 'm')
+            if t == '/ground_truth/obstacles' else m) for t, ty, ns, m in msgs]
+    with pytest.raises(ValueError, match='not on the grid'):
+        scene_from_messages(bad, frames=1)

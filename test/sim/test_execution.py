@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.gripper import GripperParams
@@ -67,3 +68,29 @@ def test_pf_on_a_certain_posterior_is_the_simulated_closure_rate() -> None:
     assert np.mean(np.abs(pf - rate)) <= 0.05
     assert abs(np.mean(pf - rate)) <= 0.01  # no bias
 
+
+
+def test_other_objects_fail_the_jaws_that_meet_them() -> None:
+    """The truth's other objects are obstacles, as in the planner's world: a grasp whose jaw closes through or
+    starts in a neighbour fails every trial (its nominal grasp is 'on_obstacle' / 'start_inside'); a grasp whose
+    jaws stay clear of it is executed exactly as without it (same draws, same successes)."""
+    from gpis_grasp_ros.tools.evaluation.truth import TrueShape
+
+    g = GridGeometry(-0.02, -0.01, 0.001, 170, 170)
+    c = np.array([0.0625, 0.0625])
+    target = rectangle_sdf(g, tuple(c), (0.015, 0.01))
+    neighbour = rectangle_sdf(g, (0.0625 + 0.045, 0.0625), (0.018, 0.02))  # 12 mm right of the target
+    gripper = GripperParams()
+    free, blocked = TrueShape(target, g), TrueShape(target, g, obstacles=neighbour)
+    across = (c - [0.022, 0.0], c + [0.066, 0.0])  # the right jaw starts beyond the neighbour and closes through it
+    assert free.execute(*across, gripper, 100, np.random.default_rng(0)) >= 95
+    assert blocked.execute(*across, gripper, 100, np.random.default_rng(0)) == 0
+    assert blocked.nominal_quality(*across, gripper)[1] == 'on_obstacle'
+    inside = (c - [0.040, 0.0], c + [0.045, 0.0])  # the right jaw starts in the neighbour's middle (6 sigma_g deep)
+    assert blocked.nominal_quality(*inside, gripper)[1] == 'start_inside'
+    assert blocked.execute(*inside, gripper, 100, np.random.default_rng(0)) == 0
+    along = (c - [0.0, 0.030], c + [0.0, 0.030])  # across the short side, 12 mm from the neighbour's face
+    n_free = free.execute(*along, gripper, 200, np.random.default_rng(3))
+    assert n_free >= 190
+    assert blocked.execute(*along, gripper, 200, np.random.default_rng(3)) == n_free
+    assert free.com == pytest.approx(blocked.com) and free.rho == blocked.rho  # the target's, not the scene's

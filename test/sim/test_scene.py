@@ -253,9 +253,9 @@ def bag(tmp_path_factory) -> Path:
 
 def test_bag_round_trip(bag, scene):
     info = bagio.bag_topics(bag)
-    assert set(info) == set(TOPIC_TYPES)
-    for topic, msgtype in TOPIC_TYPES.items():
-        assert info[topic]['type'] == msgtype
+    assert set(info) == set(GROUND_TRUTH_TOPICS + CAMERA_TOPICS)  # no distractor: no /ground_truth/obstacles
+    for topic in info:
+        assert info[topic]['type'] == TOPIC_TYPES[topic]
         assert info[topic]['count'] == (1 if topic in GROUND_TRUTH_TOPICS else 3)
     msgs = list(bagio.read_messages(bag))
     t0 = small_spec().start_ns
@@ -316,6 +316,26 @@ def test_failure_while_writing_leaves_no_bag(tmp_path, monkeypatch):
 
 
 # =========================================================================== make-bag CLI
+def test_ground_truth_obstacles_are_the_distractors(tmp_path):
+    """A distractor 2 cm beside the target is the truth's obstacle: its exact signed distance on the truth grid
+    (the analytic box distance at every cell centre), none without distractors; a bag carries it as
+    /ground_truth/obstacles and load_bag gives it back."""
+    from gpis_grasp_ros.data.bags import load_bag
+    from gpis_grasp_ros.sim.scene import Distractor
+
+    spec = small_spec(distractors=[Distractor.box(0.09, 0.0, 0.02, 0.04, 0.03)])  # x in [0.08, 0.10], y +-0.02
+    assert spec.top_down
+    gt = Scene(spec).ground_truth()
+    assert Scene(small_spec()).ground_truth().obstacles is None
+    q = np.abs(gt.geometry.cell_centers() - [0.09, 0.0]) - [0.01, 0.02]
+    box = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+    np.testing.assert_allclose(gt.obstacles, box, atol=1e-6)
+    assert gt.obstacles.min() < -0.009 and (gt.obstacles[gt.sdf < 0] > 0.019).all()
+    bag = write_scene_bag(spec, tmp_path / 'distractor.mcap')
+    loaded = load_bag(bag, frames=1)
+    np.testing.assert_array_equal(loaded.true_obstacles, gt.obstacles.astype(np.float64))
+
+
 def test_make_bag_cli(tmp_path, capsys):
     poly = tmp_path / 'square.csv'
     poly.write_text('\n'.join(f'{x},{y}' for x, y in SQUARE))

@@ -220,7 +220,7 @@ def test_shipped_head_bag_is_up_to_date(tmp_path):
     com_topic = '/ground_truth/center_of_mass'
     fresh, shipped = ([(r.topic, r.t_ns, r.raw if r.topic != com_topic else b'', r.qos) for r in bagio.iter_bag(p)]
                       for p in paths)
-    assert len(fresh) == len(shipped) == 54
+    assert len(fresh) == len(shipped) == 55  # 4 ground-truth topics, the distractors as obstacles, 10 x 5 camera
     assert fresh == shipped, 'bags/head is stale: run gpis-grasp make-bags --head'
     # the centre of mass is a sum over the outline: its last bits follow the machine's summation order (SIMD)
     com = [[(m.header.frame_id, (m.point.x, m.point.y, m.point.z)) for *_, m in bagio.read_messages(p, [com_topic])]

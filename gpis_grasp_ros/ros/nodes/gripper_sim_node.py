@@ -1,7 +1,8 @@
 """gripper_sim_node: a simulated parallel-jaw gripper standing in for the PR2's.
 
-Subscribes the bag's latched ground truth (``ground_truth/sdf``, ``ground_truth/center_of_mass``;
-never read by segmentation, GPIS or planner) and serves ``execute_grasp``
+Subscribes the bag's latched ground truth (``ground_truth/sdf``, ``ground_truth/center_of_mass`` and, when the
+scene has other labelled objects, ``ground_truth/obstacles``, their signed distance on the SDF's grid, which the
+jaws may neither start in nor close on; never read by segmentation, GPIS or planner) and serves ``execute_grasp``
 (gpis_grasp_interfaces/ExecuteGrasp): each trial perturbs the jaws with the positioning noise
 sigma_g (section V-B), closes them on the TRUE shape and checks force closure with the same
 Ferrari-Canny code the planner uses. Jaw positions and the centre of mass are camera-frame points;
@@ -64,15 +65,19 @@ class GripperSimNode(GuardedNode):
         self._sdf = None
         self._geometry = None
         self._com = None
+        self._obstacles = None  # (values, geometry) of ground_truth/obstacles
         work = MutuallyExclusiveCallbackGroup()  # apart from the parameter services (answered during trials)
         self.create_subscription(FloatGrid, 'ground_truth/sdf', guarded(self, 'ground_truth/sdf', self._on_sdf),
                                  LATCHED_QOS, callback_group=work)
+        self.create_subscription(FloatGrid, 'ground_truth/obstacles',
+                                 guarded(self, 'ground_truth/obstacles', self._on_obstacles), LATCHED_QOS,
+                                 callback_group=work)
         self.create_subscription(PointStamped, 'ground_truth/center_of_mass',
                                  guarded(self, 'ground_truth/center_of_mass', self._on_com), LATCHED_QOS,
                                  callback_group=work)
         self.create_service(ExecuteGrasp, 'execute_grasp', guarded_service(self, 'execute_grasp', self._on_execute),
                             qos_profile=SERVICE_QOS, callback_group=work)
-        log_startup(self, ['ground_truth/sdf', 'ground_truth/center_of_mass'], [],
+        log_startup(self, ['ground_truth/sdf', 'ground_truth/center_of_mass', 'ground_truth/obstacles'], [],
                     ['jaw_width', 'max_opening', 'friction_coefficient', 'position_noise'],
                     services=['execute_grasp'])
 
@@ -98,6 +103,24 @@ class GripperSimNode(GuardedNode):
             self._sdf, self._geometry = values.astype(np.float64), geometry
         self.get_logger().info(f'ground truth SDF received: {geometry.height}x{geometry.width} cells')
 
+    def _on_obstacles(self, msg: FloatGrid) -> None:
+        try:
+            validation.check_stamp(msg.header, 'FloatGrid ground_truth/obstacles')
+            validation.check_map_meta_data(msg.info, validation.Limits(max_grid_cells=4_000_000, min_resolution=1e-5,
+                                                                       min_extent=self.gripper.jaw_width),
+                                           'FloatGrid ground_truth/obstacles')
+            values, geometry = messages.float_grid_to_numpy(msg)
+            if not np.isfinite(values).all():
+                raise ValueError(f'FloatGrid ground_truth/obstacles.data has {int((~np.isfinite(values)).sum())} '
+                                 'non-finite value(s)')
+        except ValueError as exc:
+            self.reject(f'ignoring ground_truth/obstacles: {exc}')
+            return
+        with self._lock:
+            self._obstacles = (values.astype(np.float64), geometry)
+        self.get_logger().info(f'ground truth obstacles received: {int((values < 0).sum())} cells inside another '
+                               'object')
+
     def _on_com(self, msg: PointStamped) -> None:
         try:
             xyz = validation.check_point(msg, 'PointStamped ground_truth/center_of_mass.point', self.limits)
@@ -115,11 +138,20 @@ class GripperSimNode(GuardedNode):
         response.success = False
         gripper = self.gripper
         with self._lock:
-            true_sdf, geometry, com = self._sdf, self._geometry, self._com
+            true_sdf, geometry, com, obstacles = self._sdf, self._geometry, self._com, self._obstacles
         if true_sdf is None:
             response.message = ("no ground truth received yet on "
                                 f"'{self.resolve_topic_name('ground_truth/sdf')}'")
             return response
+        if obstacles is not None:
+            if obstacles[1] != geometry:
+                og = obstacles[1]
+                response.message = ("ground_truth/obstacles is not on the grid of ground_truth/sdf "
+                                    f"({og.height}x{og.width} cells of {og.resolution:g} m against "
+                                    f"{geometry.height}x{geometry.width} of {geometry.resolution:g} m, or elsewhere): "
+                                    "not this ground truth's obstacles")
+                return response
+            obstacles = obstacles[0]
         # Camera-frame points → the truth grid's (x, y) in its own table plane (the planning grid's table
         # frame may differ slightly): orthogonal projection along the true table normal.
         com = None if com is None else geometry.from_sensor(com)[0]
@@ -152,7 +184,7 @@ class GripperSimNode(GuardedNode):
             return response
         seed = int(request.seed) if request.seed else None
         successes = execute_grasp_trials(true_sdf, geometry, jaws[0], jaws[1], gripper, trials,
-                                         np.random.default_rng(seed), center_of_mass=com)
+                                         np.random.default_rng(seed), center_of_mass=com, obstacles=obstacles)
         response.trials = trials
         response.successes = int(successes)
         response.success_rate = successes / trials

@@ -36,6 +36,9 @@ def scene_messages(scene: Scene, f: Any) -> Iterator[tuple[str, str, int, Any]]:
         outline = f.new('geometry_msgs/msg/PolygonStamped', header=hdr,
                         polygon=f.new('geometry_msgs/msg/Polygon', points=pts))
     yield TOPICS['outline'], TOPIC_TYPES[TOPICS['outline']], t0, outline
+    if gt.obstacles is not None:
+        yield TOPICS['obstacles'], TOPIC_TYPES[TOPICS['obstacles']], t0, \
+            cv.numpy_to_float_grid(f, gt.obstacles, gt.geometry, hdr, 'm')
     for frame in scene.frames():
         t = frame.stamp_ns
         h = cv.header(f, t, FRAME_ID)
@@ -62,7 +65,7 @@ def write_scene_bag(spec: SceneSpec, path: str | os.PathLike[str], overwrite: bo
     ts = bagio.get_typestore()
     meta = {'gpis_grasp_ros.sim.scene': json.dumps(scene.describe(), sort_keys=True)}
     with bagio.BagWriter(path, typestore=ts, custom_data=meta, overwrite=overwrite) as bag:
-        for topic in GROUND_TRUTH_TOPICS:
+        for topic in GROUND_TRUTH_TOPICS + ((TOPICS['obstacles'],) if scene.distractors else ()):
             bag.add_topic(topic, TOPIC_TYPES[topic], bagio.LATCHED_QOS)
         for topic in CAMERA_TOPICS:
             bag.add_topic(topic, TOPIC_TYPES[topic], bagio.SENSOR_QOS)

@@ -34,13 +34,15 @@ from gpis_grasp_ros.sim.scene.view import CameraPose, ImageWindow
 class GroundTruth:
     """Ground truth at the table plane: occupancy (H, W) int8 (100 object, 0 free), signed distance
     (H, W) float32 m (positive outside), their ``geometry`` (z = table depth), centre of mass (x, y, z)
-    in m and the outline (N, 2) in m."""
+    in m and the outline (N, 2) in m; ``obstacles`` (H, W) float32 m, the signed distance to the distractors
+    (None without any): the world the jaws move in, as a real capture's truth has its other objects."""
 
     geometry: GridGeometry
     occupancy: np.ndarray
     sdf: np.ndarray
     center_of_mass: np.ndarray
     outline: np.ndarray
+    obstacles: np.ndarray | None = None
 
 
 class Scene:
@@ -120,6 +122,10 @@ class Scene:
         table_geom = GridGeometry(float(lo[0]), float(lo[1]), res, w, h, self.table_depth, FRAME_ID)
         occ = np.where(rasterise_polygon(self.outline, table_geom), 100, 0).astype(np.int8)
         sdf = polygon_signed_distance(table_geom.cell_centers(), self.outline).astype(np.float32)
+        obstacles = None
+        if self.distractors:
+            obstacles = np.minimum.reduce([polygon_signed_distance(table_geom.cell_centers(), poly)
+                                           for poly, *_rest in self.distractors]).astype(np.float32)
         if self.spec.top_down:
             geom = table_geom
             com = np.append(polygon_centroid(self.outline), self.table_depth)
@@ -128,7 +134,7 @@ class Scene:
             geom = GridGeometry(float(lo[0] - c[0]), float(lo[1] - c[1]), res, w, h, self.table_depth,
                                 FRAME_ID, self.pose.grid_rotation)
             com = self.pose.table_to_camera(polygon_centroid(self.outline))
-        return GroundTruth(geom, occ, sdf, com, self.outline.copy())
+        return GroundTruth(geom, occ, sdf, com, self.outline.copy(), obstacles)
 
     def describe(self) -> dict[str, Any]:
         """JSON-able summary of the scene (stored as bag metadata)."""

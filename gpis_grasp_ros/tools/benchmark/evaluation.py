@@ -273,7 +273,7 @@ def run_object(task: ObjectTask, report: Callable[[tuple[str, str]], None] | Non
     fit = fit_scene(scene, SensingParams(grid_size=s.grid_size), relax_opening=True)
     posterior, refusal, geometry = fit.posterior, fit.refusal, fit.geometry
     res = geometry.resolution
-    truth = (TrueShape(scene.true_sdf, scene.true_geometry, geometry)
+    truth = (TrueShape(scene.true_sdf, scene.true_geometry, geometry, obstacles=scene.true_obstacles)
              if scene.true_sdf is not None and scene.true_geometry is not None else None)
     com_rms, com_p95 = com_statistics(posterior, s.com_samples, np.random.default_rng(derive_seed('com', name)))
     info: dict[str, Any] = {

@@ -178,7 +178,7 @@ def run_fig5(out_dir: str | Path, settings: BenchmarkSettings, workers: int = 1,
     summary = []
     for (key, title, paper, expected), o, bag in zip(PATTERNS, result.objects, bags, strict=True):
         scene = load_bag(bag)
-        truth = TrueShape(scene.true_sdf, scene.true_geometry, o.geometry)
+        truth = TrueShape(scene.true_sdf, scene.true_geometry, o.geometry, obstacles=scene.true_obstacles)
         gripper = s.planner_params(METHOD_BY_KEY['gp-g']).gripper
         seeds = []
         for r in (r for r in o.rows if r['method'] == 'gp-g'):

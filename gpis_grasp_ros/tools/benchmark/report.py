@@ -253,8 +253,9 @@ def table1_markdown(result: BenchmarkResult) -> str:
     lines += _table(header, rows)
 
     lines += ['', '## Simulated gripper on the true shape', '',
-              f'Force-closure successes / executions ({s.trials} per seed, σ_g = 0.5 planning cell, true centre of '
-              'mass), summed over seeds.', '']
+              f'Force-closure successes / executions ({s.trials} per seed, the planners\' gripper: σ_g = '
+              f'{1000 * PlannerParams().gripper.sigma_g:g} mm; true centre of mass; other objects are obstacles), '
+              'summed over seeds.', '']
     rows = [[o.letter] + [_rate(cells[(o.object, m.key)].sim_successes, cells[(o.object, m.key)].sim_trials)
                           for m in extra] for o in objs]
     lines += _table(header, rows)
@@ -296,7 +297,8 @@ def calibration_markdown(result: BenchmarkResult, summary: dict[str, Any] | None
     lines = ['# Calibration: predicted probability of force closure vs simulated executions', '',
              f'{len(rows)} grasps on {len(result.objects)} objects: {n_planned} planned in the Table I run and up '
              f'to {s.calibration_candidates} GP-P candidates per object spread over P_F; each executed '
-             f'{s.calibration_trials} times by the simulated gripper on the true shape (σ_g = 0.5 planning cell). '
+             f'{s.calibration_trials} times by the simulated gripper on the true shape (σ_g = '
+             f'{1000 * PlannerParams().gripper.sigma_g:g} mm). '
              f'P̃_F of GP-M from {s.calibration_perturbations} jaw perturbations on the mean shape; P̃_F of GP-G as '
              'the optimiser computes it; P_F on S = '
              f'{s.shape_samples} shape samples independent of the candidate choice. ECE with 10 equal-width bins; '

@@ -53,6 +53,7 @@ class RealFit:
     fit: SceneFit
     true_shape: TrueShape
     truth: np.ndarray  # bool, the true shape at the planning grid's cell centres
+    true_obstacles: np.ndarray | None  # bool, the truth's other objects at the planning cell centres (None: none)
     occupancy_iou: float
     mean_shape_iou: float
     others: np.ndarray  # (K, 2) planning-grid feet of the other objects seen (fragments of the target removed)
@@ -61,13 +62,15 @@ class RealFit:
 
     def posterior(self, oracle: bool = False) -> Any:
         """The perceived posterior, or (``oracle``) the truth's occupancy sampled at the planning grid's cell
-        centres (0 or 100), every cell trained with :data:`ORACLE_NOISE_M2`."""
+        centres (0 or 100), every cell trained with :data:`ORACLE_NOISE_M2`, with the truth's other objects sampled
+        there as its obstacles (the world the perception would give at best)."""
         if not oracle:
             return self.fit.posterior
         if self._oracle is None:
             g = self.fit.sensing.geometry
+            obstacles = None if self.true_obstacles is None else np.where(self.true_obstacles, 100, 0).astype(np.int8)
             self._oracle = posterior_from_grids(np.where(self.truth, 100, 0).astype(np.int8),
-                                                np.full(g.shape, ORACLE_NOISE_M2), g)
+                                                np.full(g.shape, ORACLE_NOISE_M2), g, obstacles=obstacles)
         return self._oracle
 
 
@@ -95,8 +98,10 @@ def prepare_real(scene: Any, params: SensingParams, name: str = '') -> RealFit:
     fit = fit_scene(scene, params)
     posterior, result = fit.posterior, fit.sensing
     g = result.geometry
-    true_shape = TrueShape(scene.true_sdf, scene.true_geometry, g)
+    true_shape = TrueShape(scene.true_sdf, scene.true_geometry, g, obstacles=scene.true_obstacles)
     truth = true_shape.values_at(g.cell_centers()) < 0
+    true_obstacles = true_shape.obstacles_at(g.cell_centers())
+    true_obstacles = None if true_obstacles is None else true_obstacles < 0
     mean_shape = posterior.mean < 0
 
     def iou(a: np.ndarray) -> float:
@@ -105,7 +110,7 @@ def prepare_real(scene: Any, params: SensingParams, name: str = '') -> RealFit:
     others = _other_objects_xy(result)  # other objects seen, minus fragments of the true target (1 cm)
     if len(others):
         others = others[~(true_shape.values_at(others) < 0.01)]
-    return RealFit(name, fit, true_shape, truth, iou(result.occupancy >= 0.5), iou(mean_shape), others,
+    return RealFit(name, fit, true_shape, truth, true_obstacles, iou(result.occupancy >= 0.5), iou(mean_shape), others,
                    PlannerParams().gripper)  # the planner's (metric) gripper executes
 
 

@@ -232,7 +232,7 @@ def _object_model_cached(entry_json: str, grid_size: int, frames: int) -> Object
                            time.perf_counter() - t0, float('nan'))
     iou, surface, truth = float('nan'), {}, None
     if scene.true_sdf is not None:  # the mean shape against the truth at the cell centres, and near its surface
-        truth = TrueShape(scene.true_sdf, scene.true_geometry, posterior.geometry)
+        truth = TrueShape(scene.true_sdf, scene.true_geometry, posterior.geometry, obstacles=scene.true_obstacles)
         iou = truth.iou_on(posterior.geometry, posterior.mean)
         z = gp_z_scores(posterior, truth)
         surface = {k: z[k] for k in SURFACE_COLUMNS}
@@ -267,8 +267,8 @@ def planner_params(task: Task) -> Any:
 def run_task(task: Task, attempt: int = 1) -> dict[str, Any]:
     """Run one task (pure: the same task gives the same row apart from :data:`TIMING_COLUMNS`).
 
-    The planned grasp is executed ``trials`` times on the TRUE shape (σ_g = 0.5 planning cell, the
-    scene's true centre of mass), the jaws mapped to the true grid by
+    The planned grasp is executed ``trials`` times on the TRUE shape (the planners' gripper, the scene's true
+    centre of mass, its other objects as obstacles), the jaws mapped to the true grid by
     :meth:`~gpis_grasp_ros.tools.evaluation.truth.TrueShape.to_true` (the identity when the frames coincide)."""
     import numpy as np
 

@@ -26,15 +26,20 @@ class TrueShape:
     for the top-down bags this is the identity to ~1e-5 m. The centre of mass is that of
     {sdf_true < 0} in the true grid's frame (uniform density; the bag's
     ``ground_truth/center_of_mass`` message is in the camera frame).
+
+    ``obstacles`` (on ``geometry``, m): the signed distance to the other objects of the scene; executions and
+    Q_N close the jaws in ``min(sdf, obstacles)`` and fail on a contact with one (the planner's world).
     """
 
-    def __init__(self, sdf: np.ndarray, geometry: GridGeometry, plan_geometry: GridGeometry | None = None) -> None:
+    def __init__(self, sdf: np.ndarray, geometry: GridGeometry, plan_geometry: GridGeometry | None = None,
+                 obstacles: np.ndarray | None = None) -> None:
         self.sdf = np.asarray(sdf, dtype=np.float64)
         self.geometry = geometry
         self.plan_geometry = plan_geometry
+        self.obstacles = None if obstacles is None else np.asarray(obstacles, dtype=np.float64)
         self.com = center_of_mass(self.sdf[None], geometry)[0]
         self.rho = torque_scale(self.sdf, geometry, self.com)
-        self.bank = SdfBank(self.sdf, geometry)
+        self.bank = SdfBank(self.sdf, geometry, obstacles=self.obstacles)
 
     def aligned(self) -> bool:
         """Whether the planning grid's table frame is the true grid's (same rotation, same height)."""
@@ -63,18 +68,24 @@ class TrueShape:
         """True SDF (m) at planning-grid points ``(..., 2)``."""
         return bilinear(self.sdf, self.geometry, self.to_true(xy_plan))
 
+    def obstacles_at(self, xy_plan: np.ndarray) -> np.ndarray | None:
+        """The truth's obstacle distance (m) at planning-grid points ``(..., 2)``; None without obstacles."""
+        if self.obstacles is None:
+            return None
+        return bilinear(self.obstacles, self.geometry, self.to_true(xy_plan))
+
     def nominal_quality(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams) -> tuple[float, str]:
         """Q_N: Ferrari–Canny L1 of the unperturbed grasp (planning-grid m) on the true shape, and a status.
 
-        Status 'ok' (Q_N may still be <= 0: no force closure), else 'no_contact', 'start_inside'
-        or 'opening_exceeded' with Q_N = NaN.
+        Status 'ok' (Q_N may still be <= 0: no force closure), else 'no_contact', 'start_inside',
+        'opening_exceeded' or 'on_obstacle' (a jaw meets another object) with Q_N = NaN.
         """
         j1 = np.asarray(jaw1, dtype=np.float64).reshape(1, 2)
         j2 = np.asarray(jaw2, dtype=np.float64).reshape(1, 2)
         if not (np.all(np.isfinite(j1)) and np.all(np.isfinite(j2))):
             return float('nan'), 'no_grasp'
         con = find_contacts(self.bank, self.to_true(j1), self.to_true(j2), gripper)
-        for name in ('opening_exceeded', 'start_inside', 'no_contact'):
+        for name in ('opening_exceeded', 'start_inside', 'no_contact', 'on_obstacle'):
             if bool(getattr(con, name)[0]):
                 return float('nan'), name
         q = ferrari_canny_l1(con.c1, con.c2, con.n1, con.n2, self.com, gripper.friction_coef, self.rho)
@@ -89,7 +100,8 @@ class TrueShape:
         ``snap_aligned`` as in :meth:`to_true`."""
         com = self.com if center_of_mass is None else center_of_mass
         return execute_grasp_trials(self.sdf, self.geometry, self.to_true(jaw1, snap_aligned),
-                                    self.to_true(jaw2, snap_aligned), gripper, trials, rng, center_of_mass=com)
+                                    self.to_true(jaw2, snap_aligned), gripper, trials, rng, center_of_mass=com,
+                                    obstacles=self.obstacles)
 
     def outline(self) -> list[np.ndarray]:
         """Boundary polylines of {sdf < 0} in planning-grid metres (outer outlines and holes)."""
