@@ -3,6 +3,8 @@ force closure counted. Lives next to the simulator because it needs the ground t
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from gpis_grasp_ros.core.contacts import find_contacts, perturb_grasps
@@ -13,10 +15,41 @@ from gpis_grasp_ros.core.quality import grasp_quality, torque_scale
 from gpis_grasp_ros.core.sdf_bank import SdfBank
 
 
+@dataclass(frozen=True)
+class ExecutionOutcome:
+    """What ``trials`` simulated executions of one grasp did; every trial is counted once, in this order:
+    ``too_wide`` (the commanded opening exceeds w_g: every trial), ``collision`` (a jaw starts inside the target
+    or another object, or meets another object), ``missed`` (a jaw closes without meeting the target), ``slipped``
+    (both jaws meet the target but the contacts are not in force closure, or a contact has no defined normal),
+    ``closed`` (force closure)."""
+
+    trials: int
+    closed: int = 0
+    collision: int = 0
+    missed: int = 0
+    slipped: int = 0
+    too_wide: int = 0
+
+    def describe(self) -> str:
+        """E.g. ``12/20 in force closure (collision 5, missed 0, slipped 3)``."""
+        failed = (f'commanded opening too wide: {self.too_wide}' if self.too_wide else
+                  f'collision {self.collision}, missed {self.missed}, slipped {self.slipped}')
+        return f'{self.closed}/{self.trials} in force closure ({failed})'
+
+
 def execute_grasp_trials(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw1: np.ndarray, jaw2: np.ndarray,
                          gripper: GripperParams, trials: int, rng: np.random.Generator,
                          center_of_mass: np.ndarray | None = None, obstacles: np.ndarray | None = None) -> int:
-    """Number of force-closure successes of ``trials`` executions of grasp (jaw1, jaw2) (m) on a true SDF.
+    """Number of force-closure successes of ``trials`` executions (:func:`execute_grasp_outcome`)."""
+    return execute_grasp_outcome(true_sdf, true_geometry, jaw1, jaw2, gripper, trials, rng, center_of_mass,
+                                 obstacles).closed
+
+
+def execute_grasp_outcome(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw1: np.ndarray, jaw2: np.ndarray,
+                          gripper: GripperParams, trials: int, rng: np.random.Generator,
+                          center_of_mass: np.ndarray | None = None,
+                          obstacles: np.ndarray | None = None) -> ExecutionOutcome:
+    """Outcome of ``trials`` executions of grasp (jaw1, jaw2) (m) on a true SDF.
 
     Each trial perturbs the jaws with σ_g (V-B), closes them on ``true_sdf`` (m, on
     ``true_geometry``, which may differ from the planning grid — everything is metric) and checks
@@ -28,14 +61,20 @@ def execute_grasp_trials(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw1
     """
     jaw1 = np.asarray(jaw1, dtype=np.float64).reshape(2)
     jaw2 = np.asarray(jaw2, dtype=np.float64).reshape(2)
-    if trials <= 0 or np.linalg.norm(jaw2 - jaw1) > gripper.max_opening * (1 + 1e-9) + 1e-12:
-        return 0
+    trials = max(int(trials), 0)
+    if trials == 0:
+        return ExecutionOutcome(0)
+    if np.linalg.norm(jaw2 - jaw1) > gripper.max_opening * (1 + 1e-9) + 1e-12:
+        return ExecutionOutcome(trials, too_wide=trials)
     sdf = np.asarray(true_sdf, dtype=np.float64)
     bank = SdfBank(sdf, true_geometry, obstacles=obstacles)
     com = sdf_center_of_mass(sdf[None], true_geometry)[0] if center_of_mass is None else np.asarray(center_of_mass)
     rho = torque_scale(sdf, true_geometry, com)
-    eps = rng.standard_normal((int(trials), 2, 2))
+    eps = rng.standard_normal((trials, 2, 2))
     g1, g2 = perturb_grasps(jaw1, jaw2, eps, gripper.sigma_g)
     con = find_contacts(bank, g1, g2, gripper, check_opening=False)
-    q = grasp_quality(con, com, gripper, rho)
-    return int(np.count_nonzero(q > 0))
+    closed = grasp_quality(con, com, gripper, rho) > 0
+    collision = ~closed & (con.start_inside | (con.on_obstacle if con.on_obstacle is not None else False))
+    missed = ~closed & ~collision & con.no_contact
+    return ExecutionOutcome(trials, closed=int(closed.sum()), collision=int(collision.sum()),
+                            missed=int(missed.sum()), slipped=int((~closed & ~collision & ~missed).sum()))

@@ -115,10 +115,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f'import-rgbd: error: {exc}', file=sys.stderr)
             return 2
         for seed, ev in zip(seeds, evs, strict=True):
+            executed = ev.outcome.describe() if ev.outcome else f'0/{ev.trials} in force closure (no grasp)'
             print(f'{ev.bag}{" (planned on the ground truth)" if args.oracle else ""} seed {seed}: tilt '
                   f'{ev.tilt_deg:.1f} deg, {ev.objects_seen} object(s) seen; target occupancy IoU '
-                  f'{ev.occupancy_iou:.2f}, mean-shape IoU {ev.mean_shape_iou:.2f}; {args.method} {ev.successes}/'
-                  f'{ev.trials} in force closure on the true shape (P_F {ev.p_f:.2f}); nearest other object '
+                  f'{ev.occupancy_iou:.2f}, mean-shape IoU {ev.mean_shape_iou:.2f}; {args.method} {executed} '
+                  f'on the true shape (P_F {ev.p_f:.2f}); nearest other object '
                   f'{ev.jaw_clearance_m * 1000:.0f} mm from a jaw {ev.message}')
         if len(evs) > 1:
             wins = [e.successes for e in evs]

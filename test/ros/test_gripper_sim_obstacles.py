@@ -52,6 +52,8 @@ def test_gripper_sim_fails_jaws_on_other_objects_and_refuses_a_foreign_grid():
         across = ExecuteGrasp.Request(jaw1=pose(c - [0.022, 0.0]), jaw2=pose(c + [0.066, 0.0]), trials=50, seed=4)
         res = ros.call(cli, across)
         assert res.success and res.successes == 0, res.message  # the right jaw closes through the neighbour
+        collisions = int(res.message.split('(collision ')[1].split(',')[0])
+        assert collisions >= 45 and res.message.endswith('on the true shape'), res.message
         along = ExecuteGrasp.Request(jaw1=pose(c - [0.0, 0.03]), jaw2=pose(c + [0.0, 0.03]), trials=50, seed=4)
         res = ros.call(cli, along)
         j = [g.from_sensor(g.to_sensor(p, 0.0))[0] for p in (c - [0.0, 0.03], c + [0.0, 0.03])]

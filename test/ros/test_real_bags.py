@@ -115,7 +115,7 @@ def test_evaluate_command_runs_seeds_the_oracle_and_other_planners(capsys):
     assert 'seeds must be >= 1' in capsys.readouterr().err
     assert main(args + ['--method', 'gp-m']) == 0
     out = capsys.readouterr().out
-    assert '; gp-m ' in out and '/5 in force closure on the true shape' in out
+    assert '; gp-m ' in out and '/5 in force closure (collision ' in out and ') on the true shape' in out
 
     def occupancy_iou(text: str) -> float:
         return float(text.split('target occupancy IoU ')[1].split(',')[0])

@@ -94,3 +94,32 @@ def test_other_objects_fail_the_jaws_that_meet_them() -> None:
     assert n_free >= 190
     assert blocked.execute(*along, gripper, 200, np.random.default_rng(3)) == n_free
     assert free.com == pytest.approx(blocked.com) and free.rho == blocked.rho  # the target's, not the scene's
+
+
+def test_every_execution_is_counted_once_by_what_it_did() -> None:
+    """The outcome of a grasp's executions: closures as execute_grasp_trials counts them (same draws); a jaw
+    closing through a neighbour is a collision, a grasp beside the object a miss, a grasp whose closing line
+    leaves the friction cone a slip, a jaw starting inside the object a collision too; the causes add up to the
+    trials; too wide an opening fails every trial."""
+    from gpis_grasp_ros.sim.execution import execute_grasp_outcome
+
+    g = GridGeometry(-0.02, -0.01, 0.001, 170, 170)
+    c = np.array([0.0625, 0.0625])
+    target = rectangle_sdf(g, tuple(c), (0.015, 0.01))
+    neighbour = rectangle_sdf(g, (0.0625 + 0.045, 0.0625), (0.018, 0.02))
+    gripper = GripperParams()
+    tilted = np.array([-math.sin(math.radians(40)), math.cos(math.radians(40))])  # 40 deg > arctan 0.5 off the normal
+    cases = {'across': ((c - [0.022, 0.0], c + [0.066, 0.0]), neighbour, 'collision'),
+             'inside': ((c - [0.04, 0.0], c + [0.005, 0.0]), None, 'collision'),
+             'beside': ((c + [-0.04, -0.035], c + [0.02, -0.035]), neighbour, 'missed'),
+             'tilted': ((c - 0.04 * tilted, c + 0.04 * tilted), None, 'slipped'),
+             'good': ((c - [0.0, 0.03], c + [0.0, 0.03]), neighbour, 'closed')}
+    for name, ((j1, j2), obstacles, cause) in cases.items():
+        out = execute_grasp_outcome(target, g, j1, j2, gripper, 100, np.random.default_rng(5), obstacles=obstacles)
+        assert out.closed + out.collision + out.missed + out.slipped == out.trials == 100, (name, out)
+        assert getattr(out, cause) >= 90, (name, out)
+        assert out.closed == execute_grasp_trials(target, g, j1, j2, gripper, 100, np.random.default_rng(5),
+                                                  obstacles=obstacles)
+    wide = execute_grasp_outcome(target, g, c - [0.05, 0.0], c + [0.05, 0.0], gripper, 7, np.random.default_rng(0))
+    assert (wide.too_wide, wide.closed, wide.trials) == (7, 0, 7) and 'too wide' in wide.describe()
+    assert execute_grasp_outcome(target, g, *cases['good'][0], gripper, 0, np.random.default_rng(0)).trials == 0

@@ -144,6 +144,13 @@ def test_evaluate_real_on_the_shipped_bags(tmp_path, capsys):
     assert units['cleargrasp_000000080_bottle']['occupancy_iou'] > 0.5  # bags/real/README.md: 0.60
     rows = result['rows']
     assert len(rows) == 4 and all(0 <= r['successes'] <= r['trials'] == 4 for r in rows)
+    # every execution of a grasp is counted once: closed, or failed by collision, miss or slip
+    assert all(r['successes'] + r['collision'] + r['missed'] + r['slipped'] + r['too_wide'] == 4 for r in rows
+               if r['status'] == 'ok')
+    assert 'gp-gpis-opt collision / missed / slipped' in text.splitlines()[0]
+    assert all(u['methods']['gp-gpis-opt']['closures'] + u['methods']['gp-gpis-opt']['collision']
+               + u['methods']['gp-gpis-opt']['missed'] + u['methods']['gp-gpis-opt']['slipped'] == 4
+               for u in units.values())
     assert sum(b['count'] for s in result['reliability'].values() for b in s) == 4
     # a target pixel off every object is a row with its reason, not a crash
     off = _write(tmp_path / 'off.yaml', {'root': str(REPO), 'captures': [

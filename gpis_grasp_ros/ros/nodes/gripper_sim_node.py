@@ -37,7 +37,7 @@ from gpis_grasp_ros.ros.nodes.common import (
 )
 from gpis_grasp_ros.ros.nodes.shared_params import check_gripper, gripper_params
 from gpis_grasp_ros.ros.params import ParamTable
-from gpis_grasp_ros.sim.execution import execute_grasp_trials
+from gpis_grasp_ros.sim.execution import execute_grasp_outcome
 
 MAX_TRIALS = 100000
 #: Jaws closer than this (m) are the same point: no grasp to execute.
@@ -183,13 +183,13 @@ class GripperSimNode(GuardedNode):
                                 f'(need at least {MIN_JAW_SEPARATION * 1000:g} mm)')
             return response
         seed = int(request.seed) if request.seed else None
-        successes = execute_grasp_trials(true_sdf, geometry, jaws[0], jaws[1], gripper, trials,
-                                         np.random.default_rng(seed), center_of_mass=com, obstacles=obstacles)
+        outcome = execute_grasp_outcome(true_sdf, geometry, jaws[0], jaws[1], gripper, trials,
+                                        np.random.default_rng(seed), center_of_mass=com, obstacles=obstacles)
         response.trials = trials
-        response.successes = int(successes)
-        response.success_rate = successes / trials
+        response.successes = outcome.closed
+        response.success_rate = outcome.closed / trials
         response.success = True
-        response.message = f'{successes}/{trials} trials in force closure on the true shape'
+        response.message = f'{outcome.describe()} on the true shape'
         return response
 
 

@@ -1,7 +1,9 @@
 """Tables, summary and reliability diagram of ``gpis-grasp evaluate-real`` from its result rows.
 
 Per unit (capture × variant): the perceived IoUs, per method the closures (mean over seeds of the successes
-of ``trials`` simulated executions), the mean P_F and the mean |P_F − closure rate| over the seeds' grasps, the
+of ``trials`` simulated executions), the mean P_F and the mean |P_F − closure rate| over the seeds' grasps, how the
+other executions failed (mean over seeds: a jaw in collision with the target or another object, a jaw missing the
+target, contacts that slip: :class:`~gpis_grasp_ros.sim.execution.ExecutionOutcome`), the
 oracle's closures and P_F, the nearest other object to a jaw (smallest over the perceived grasps), objects
 seen, the refusal reason and the summed task time. A seed without a grasp closes 0 and has no P_F.
 """
@@ -15,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from gpis_grasp_ros.tools.evaluate_real.tasks import ORACLE
+from gpis_grasp_ros.tools.evaluate_real.tasks import FAILURES, ORACLE
 
 
 def _mean(values: Sequence[float]) -> float:
@@ -26,7 +28,8 @@ def _mean(values: Sequence[float]) -> float:
 def _method_figures(sel: Sequence[dict[str, Any]]) -> dict[str, float]:
     rates = [(r['p_f'], r['successes'] / r['trials']) for r in sel if math.isfinite(r['p_f']) and r['trials']]
     return {'closures': _mean([r['successes'] for r in sel]), 'p_f': _mean([p for p, _ in rates]),
-            'gap': _mean([abs(p - c) for p, c in rates]), 'grasps': len(rates), 'seeds': len(sel)}
+            'gap': _mean([abs(p - c) for p, c in rates]), 'grasps': len(rates), 'seeds': len(sel),
+            **{k: _mean([r.get(k, math.nan) for r in sel]) for k in FAILURES}}
 
 
 def aggregate(rows: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool) -> list[dict[str, Any]]:
@@ -65,12 +68,18 @@ def _f(x: float | None, fmt: str = '.2f') -> str:
     return format(x, fmt)
 
 
+def _failures(f: dict[str, Any]) -> str:
+    """Mean failed executions by cause, e.g. ``2.4 / 0.0 / 1.2`` (a commanded opening wider than the gripper's, which
+    the planners never give, is in the JSON's ``too_wide`` only)."""
+    return ' / '.join(_f(f[k], '.1f') for k in ('collision', 'missed', 'slipped'))
+
+
 def table(units: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool) -> str:
     """Markdown table, one row per unit."""
     trials = units[0]['trials'] if units else 0
     head = ['capture', 'variant', 'occ. IoU', 'mean-shape IoU']
     for m in methods:
-        head += [f'{m} closures /{trials}', f'{m} P_F', f'{m} \\|P_F − rate\\|']
+        head += [f'{m} closures /{trials}', f'{m} P_F', f'{m} \\|P_F − rate\\|', f'{m} collision / missed / slipped']
     if oracle:
         head += [f'oracle closures /{trials}', 'oracle P_F']
     head += ['jaw clearance (mm)', 'objects seen', 'refused', 'time (s)']
@@ -79,7 +88,7 @@ def table(units: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool)
         cells = [u['capture'], u['variant'], _f(u['occupancy_iou']), _f(u['mean_shape_iou'])]
         for m in methods:
             f = u['methods'].get(m)
-            cells += ['–', '–', '–'] if f is None else [_f(f['closures'], '.1f'), _f(f['p_f']), _f(f['gap'])]
+            cells += ['–'] * 4 if f is None else [_f(f['closures'], '.1f'), _f(f['p_f']), _f(f['gap']), _failures(f)]
         if oracle:
             o = u['oracle']
             cells += ['–', '–'] if o is None else [_f(o['closures'], '.1f'), _f(o['p_f'])]

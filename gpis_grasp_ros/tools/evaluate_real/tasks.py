@@ -20,6 +20,8 @@ from typing import Any
 from gpis_grasp_ros.tools.evaluation.real import RealFit, evaluate_grasp, prepare_real, sensing_params
 from gpis_grasp_ros.tools.evaluation.tasks import EvalSettings, Task
 
+#: How a row's executions failed (:class:`~gpis_grasp_ros.sim.execution.ExecutionOutcome`'s counts; 0 without a grasp)
+FAILURES = ('collision', 'missed', 'slipped', 'too_wide')
 #: The method name of planning GP-GPIS-OPT on the truth sampled at the planning grid (``--oracle``)
 ORACLE = 'oracle'
 ORACLE_PLANNER = 'gp-gpis-opt'
@@ -86,13 +88,15 @@ def run_real_task(task: Task, attempt: int = 1) -> dict[str, Any]:
                                'variant': e['variant'], 'method': task.method, 'oracle': oracle,
                                'seed': int(task.seed), 'trials': trials, 'attempts': int(attempt)}
         if rf is None:
-            row.update({'status': 'refused', 'refusal': refusal, 'successes': 0, 'p_f': math.nan,
+            row.update({'status': 'refused', 'refusal': refusal, 'successes': 0, **dict.fromkeys(FAILURES, 0),
+                        'p_f': math.nan,
                         'occupancy_iou': math.nan, 'mean_shape_iou': math.nan, 'jaw_clearance_m': math.nan,
                         'objects_seen': None, 'tilt_deg': math.nan, 'message': ''})
         else:
             ev = evaluate_grasp(rf, ORACLE_PLANNER if oracle else task.method, int(task.seed), trials, oracle)
+            failures = {k: 0 if ev.outcome is None else int(getattr(ev.outcome, k)) for k in FAILURES}
             row.update({'status': 'ok' if math.isfinite(ev.p_f) else 'no_grasp', 'refusal': '',
-                        'successes': ev.successes, 'p_f': ev.p_f, 'occupancy_iou': ev.occupancy_iou,
+                        'successes': ev.successes, **failures, 'p_f': ev.p_f, 'occupancy_iou': ev.occupancy_iou,
                         'mean_shape_iou': ev.mean_shape_iou, 'jaw_clearance_m': ev.jaw_clearance_m,
                         'objects_seen': int(ev.objects_seen), 'tilt_deg': float(ev.tilt_deg), 'message': ev.message})
         row.update({'prepare_time_s': 0.0 if cached else prepare_s, 'task_time_s': time.perf_counter() - t0})

@@ -21,6 +21,7 @@ from gpis_grasp_ros.core.pipeline import posterior_from_grids
 from gpis_grasp_ros.core.planners import PlannerParams, plan
 from gpis_grasp_ros.core.sensing import SensingParams, SensingResult
 from gpis_grasp_ros.data.bags import load_bag
+from gpis_grasp_ros.sim.execution import ExecutionOutcome
 from gpis_grasp_ros.tools.evaluation.tasks import SceneFit, fit_scene
 from gpis_grasp_ros.tools.evaluation.truth import TrueShape
 
@@ -43,6 +44,7 @@ class RealEvaluation:
     objects_seen: int
     tilt_deg: float
     message: str = ''
+    outcome: ExecutionOutcome | None = None  # how the executions failed (None: no grasp)
 
 
 @dataclass
@@ -124,12 +126,12 @@ def evaluate_grasp(rf: RealFit, method: str, seed: int, trials: int = 20, oracle
     if not grasp.success:
         return RealEvaluation(rf.name, rf.occupancy_iou, rf.mean_shape_iou, 0, trials, float('nan'), float('nan'),
                               result.objects_seen, result.table.tilt_deg, grasp.message)
-    ok = rf.true_shape.execute(grasp.jaw1, grasp.jaw2, rf.gripper, trials, np.random.default_rng(seed))
+    outcome = rf.true_shape.execute_outcome(grasp.jaw1, grasp.jaw2, rf.gripper, trials, np.random.default_rng(seed))
     others = rf.others
     clearance = (float(min(np.linalg.norm(others - np.asarray(j), axis=1).min() for j in (grasp.jaw1, grasp.jaw2)))
                  if len(others) else float('inf'))
-    return RealEvaluation(rf.name, rf.occupancy_iou, rf.mean_shape_iou, int(ok), trials, float(grasp.p_f), clearance,
-                          result.objects_seen, result.table.tilt_deg, grasp.message)
+    return RealEvaluation(rf.name, rf.occupancy_iou, rf.mean_shape_iou, outcome.closed, trials, float(grasp.p_f),
+                          clearance, result.objects_seen, result.table.tilt_deg, grasp.message, outcome)
 
 
 def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',

@@ -13,7 +13,7 @@ from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.quality import ferrari_canny_l1, torque_scale
 from gpis_grasp_ros.core.sdf_bank import SdfBank, bilinear
-from gpis_grasp_ros.sim.execution import execute_grasp_trials
+from gpis_grasp_ros.sim.execution import ExecutionOutcome, execute_grasp_outcome
 
 
 class TrueShape:
@@ -94,14 +94,20 @@ class TrueShape:
     def execute(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams, trials: int,
                 rng: np.random.Generator, center_of_mass: np.ndarray | None = None,
                 snap_aligned: bool = False) -> int:
-        """Successes of ``trials`` simulated executions (:func:`execute_grasp_trials`) of a planning-grid grasp.
+        """Successes of ``trials`` simulated executions of a planning-grid grasp (:meth:`execute_outcome`)."""
+        return self.execute_outcome(jaw1, jaw2, gripper, trials, rng, center_of_mass, snap_aligned).closed
+
+    def execute_outcome(self, jaw1: np.ndarray, jaw2: np.ndarray, gripper: GripperParams, trials: int,
+                        rng: np.random.Generator, center_of_mass: np.ndarray | None = None,
+                        snap_aligned: bool = False) -> ExecutionOutcome:
+        """What ``trials`` simulated executions (:func:`execute_grasp_outcome`) of a planning-grid grasp did.
 
         ``center_of_mass`` (true grid, m) replaces that of {sdf < 0} (e.g. the scene's recorded one);
         ``snap_aligned`` as in :meth:`to_true`."""
         com = self.com if center_of_mass is None else center_of_mass
-        return execute_grasp_trials(self.sdf, self.geometry, self.to_true(jaw1, snap_aligned),
-                                    self.to_true(jaw2, snap_aligned), gripper, trials, rng, center_of_mass=com,
-                                    obstacles=self.obstacles)
+        return execute_grasp_outcome(self.sdf, self.geometry, self.to_true(jaw1, snap_aligned),
+                                     self.to_true(jaw2, snap_aligned), gripper, trials, rng, center_of_mass=com,
+                                     obstacles=self.obstacles)
 
     def outline(self) -> list[np.ndarray]:
         """Boundary polylines of {sdf < 0} in planning-grid metres (outer outlines and holes)."""
