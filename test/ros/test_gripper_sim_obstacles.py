@@ -66,5 +66,11 @@ def test_gripper_sim_fails_jaws_on_other_objects_and_refuses_a_foreign_grid():
         assert wait_for(lambda: abs(node._obstacles[1].origin_x - foreign.origin_x) < 1e-9, 10.0)
         res = ros.call(cli, along)
         assert not res.success and 'not on the grid of ground_truth/sdf' in res.message
+        bad = neighbour.astype(np.float32)
+        bad[3, 4] = np.nan  # refused (counted, logged with the reason), the previous grid kept
+        rejected = node.rejected
+        obs_pub.publish(messages.numpy_to_float_grid(f, bad, g, messages.header(f, 3, 'cam'), 'm'))
+        assert wait_for(lambda: node.rejected == rejected + 1, 10.0)
+        assert abs(node._obstacles[1].origin_x - foreign.origin_x) < 1e-9
     finally:
         ros.close()

@@ -23,6 +23,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 
 from gpis_grasp_interfaces.msg import FloatGrid
 from gpis_grasp_interfaces.srv import ExecuteGrasp
+from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.data import messages
 from gpis_grasp_ros.ros import validation
@@ -84,40 +85,37 @@ class GripperSimNode(GuardedNode):
     def _apply_gripper(self, gripper: GripperParams) -> None:
         self.gripper = gripper
 
+    def _true_grid(self, msg: FloatGrid, topic: str) -> tuple[np.ndarray, GridGeometry]:
+        """A ground-truth FloatGrid's values (m, float64) and geometry; ValueError names what is wrong."""
+        validation.check_stamp(msg.header, f'FloatGrid {topic}')
+        validation.check_map_meta_data(msg.info, validation.Limits(max_grid_cells=4_000_000, min_resolution=1e-5,
+                                                                   min_extent=self.gripper.jaw_width),
+                                       f'FloatGrid {topic}')
+        values, geometry = messages.float_grid_to_numpy(msg)
+        if not np.isfinite(values).all():
+            raise ValueError(f'FloatGrid {topic}.data has {int((~np.isfinite(values)).sum())} non-finite value(s)')
+        return values.astype(np.float64), geometry
+
     def _on_sdf(self, msg: FloatGrid) -> None:
         try:
-            validation.check_stamp(msg.header, 'FloatGrid ground_truth/sdf')
-            validation.check_map_meta_data(msg.info, validation.Limits(max_grid_cells=4_000_000, min_resolution=1e-5,
-                                                                       min_extent=self.gripper.jaw_width),
-                                           'FloatGrid ground_truth/sdf')
-            values, geometry = messages.float_grid_to_numpy(msg)
-            if not np.isfinite(values).all():
-                raise ValueError(f'FloatGrid ground_truth/sdf.data has {int((~np.isfinite(values)).sum())} '
-                                 'non-finite value(s)')
+            values, geometry = self._true_grid(msg, 'ground_truth/sdf')
             if not (values < 0).any():
                 raise ValueError('FloatGrid ground_truth/sdf.data has no cell inside the object (no value < 0)')
         except ValueError as exc:
             self.reject(f'ignoring ground_truth/sdf: {exc}')
             return
         with self._lock:
-            self._sdf, self._geometry = values.astype(np.float64), geometry
+            self._sdf, self._geometry = values, geometry
         self.get_logger().info(f'ground truth SDF received: {geometry.height}x{geometry.width} cells')
 
     def _on_obstacles(self, msg: FloatGrid) -> None:
         try:
-            validation.check_stamp(msg.header, 'FloatGrid ground_truth/obstacles')
-            validation.check_map_meta_data(msg.info, validation.Limits(max_grid_cells=4_000_000, min_resolution=1e-5,
-                                                                       min_extent=self.gripper.jaw_width),
-                                           'FloatGrid ground_truth/obstacles')
-            values, geometry = messages.float_grid_to_numpy(msg)
-            if not np.isfinite(values).all():
-                raise ValueError(f'FloatGrid ground_truth/obstacles.data has {int((~np.isfinite(values)).sum())} '
-                                 'non-finite value(s)')
+            values, geometry = self._true_grid(msg, 'ground_truth/obstacles')
         except ValueError as exc:
             self.reject(f'ignoring ground_truth/obstacles: {exc}')
             return
         with self._lock:
-            self._obstacles = (values.astype(np.float64), geometry)
+            self._obstacles = (values, geometry)
         self.get_logger().info(f'ground truth obstacles received: {int((values < 0).sum())} cells inside another '
                                'object')
 
