@@ -160,3 +160,40 @@ def test_evaluate_real_on_the_shipped_bags(tmp_path, capsys):
     unit = json.loads((tmp_path / 'off' / 'results.json').read_text())['units'][0]
     assert unit['refusal'].startswith('segmentation: ') and unit['methods'] == {}
     assert 'mean over 1 units (1 refused)' in capsys.readouterr().out
+
+
+def test_the_oracle_plans_in_the_truths_world(tmp_path):
+    """A labelled neighbour 8 mm beside the target: the truth carries it as an obstacle, sampled at the planning
+    grid it is the oracle posterior's obstacle (negative on the neighbour's cells, positive on the target's), and
+    the perceived scene has it too; a grasp whose jaw starts in it fails every execution as a collision."""
+    from gpis_grasp_ros.tools.evaluation.real import prepare_real, sensing_params
+
+    target, second = Box(0.0, 0.01, 0.03, 0.02, 0.04), Box(0.05, 0.01, 0.012, 0.02, 0.03, rgb=(200.0, 60.0, 40.0))
+    scene = TiltedScene(45.0, distance_m=0.6, boxes=[target, second], width=480, height=360, focal_px=450.0)
+    depth, rgb, label = scene.render()
+    d = tmp_path
+    cv2.imwrite(str(d / 'rgb.png'), np.asarray(rgb, dtype=np.uint8)[..., ::-1])
+    cv2.imwrite(str(d / 'depth.png'), _millimetres(depth))
+    cv2.imwrite(str(d / 'mask.png'), np.where(label > 0, 255, 0).astype(np.uint8))
+    i = scene.intrinsics
+    (d / 'cam.yaml').write_text(yaml.safe_dump({'fx': i.fx, 'fy': i.fy, 'cx': i.cx, 'cy': i.cy}))
+    v, u = np.nonzero(label == 1)
+    px = (float(u.mean()), float(v.mean()))
+    imported = ri.import_capture(d / 'rgb.png', d / 'depth.png', d / 'cam.yaml', gt_mask=d / 'mask.png',
+                                 gt_depth=d / 'depth.png', target_px=px)
+    rf = prepare_real(ri.capture_scene(imported), sensing_params(imported.target_px), 'two boxes')
+    g = rf.fit.sensing.geometry
+    assert rf.true_obstacles is not None and rf.true_obstacles.sum() > 20
+    oracle = rf.posterior(oracle=True)
+    assert oracle.obstacles is not None
+    assert (oracle.obstacles[rf.true_obstacles] < 0).all() and (oracle.obstacles[rf.truth] > 0).all()
+    assert rf.fit.posterior.obstacles is not None  # the perception saw the neighbour as an obstacle too
+    cells = g.cell_centers()
+    ts = rf.true_shape  # the neighbour's deepest point on the truth's own grid, in planning-grid metres
+    deepest = np.unravel_index(np.argmin(ts.obstacles), ts.obstacles.shape)
+    centre_ob = ts.to_plan(ts.geometry.cell_centers()[deepest])
+    assert ts.obstacles[deepest] < -0.01  # the neighbour's middle, 12 mm from its long faces
+    centre_t = cells[rf.truth].mean(axis=0)
+    away = centre_t - 0.035 * (centre_ob - centre_t) / np.linalg.norm(centre_ob - centre_t)
+    out = rf.true_shape.execute_outcome(away, centre_ob, rf.gripper, 20, np.random.default_rng(0))
+    assert out.collision == 20 and out.closed == 0, out
