@@ -1,11 +1,12 @@
 """Final P_F benchmark: where the S = 1000 Monte-Carlo estimate of one grasp spends its time, and whether the
 float32 shape samples give the float64 ones' force-closure counts.
 
-    python -m gpis_grasp_ros.bench pf [--repeats N] [--bags A_tape_dispenser head/A_tape_dispenser]
+    python -m gpis_grasp_ros.bench pf [--repeats N] [--bags A_tape_dispenser head/A_tape_dispenser] [--grid-size M]
     python -m gpis_grasp_ros.bench pf --equivalence [--seeds 3]
 
 Timing: CPU ms (``time.process_time``, one BLAS thread) of the parts of ``draw_shape_samples`` +
-``probability_force_closure`` on the GP-GPIS-OPT grasp (seed 0) of each bag, for float32 (the default) and
+``probability_force_closure`` on the GP-GPIS-OPT grasp (seed 0) of each bag (on the nodes' default grid, the
+3 mm cell rule, or with ``--grid-size M`` an M x M grid, e.g. the paper's 25), for float32 (the default) and
 float64 samples, min / median of ``--repeats`` after a warm-up: the joint samples
 (:meth:`GpisPosterior.sample_deviations`), the lookup grids (:meth:`SdfBank.from_deviations`), the Monte-Carlo
 contacts and force closure, and the whole estimate. ``--equivalence``: on every shipped bag (top-down and
@@ -27,6 +28,7 @@ from gpis_grasp_ros.core.planners import PlannerParams, plan
 from gpis_grasp_ros.core.planners.context import PlanningContext
 from gpis_grasp_ros.core.quality import draw_shape_samples, force_closure_successes, probability_force_closure
 from gpis_grasp_ros.core.sdf_bank import SdfBank
+from gpis_grasp_ros.core.sensing import SensingParams
 from gpis_grasp_ros.data.bags import load_bag, posterior_from_scene
 
 BAG_DIR = Path(__file__).resolve().parents[2] / 'bags'
@@ -104,16 +106,20 @@ def main(argv: list[str] | None = None) -> int:
                     help='bags under bags/ (without .mcap)')
     ap.add_argument('--equivalence', action='store_true', help='float32 vs float64 counts on every shipped bag')
     ap.add_argument('--seeds', type=int, default=3, help='seeds of the equivalence table')
+    ap.add_argument('--grid-size', type=int, default=0,
+                    help='M of the M x M planning grid for the timing table (default 0: the nodes\' cell rule)')
     args = ap.parse_args(argv)
     with threadpool_limits(1):
         if args.equivalence:
             equivalence(sorted(BAG_DIR.glob('*.mcap')) + sorted(BAG_DIR.glob('head/*.mcap')), args.seeds)
             return 0
-        print(f'final P_F, S = 1000, CPU ms min / median of {args.repeats}, one BLAS thread')
+        grid = 'the nodes\' cell-rule grid' if args.grid_size <= 0 else f'M = {args.grid_size}'
+        print(f'final P_F, S = 1000, {grid}, CPU ms min / median of {args.repeats}, one BLAS thread')
         print('\n| bag | S | basis | part | float32 | float64 |')
         print('|---|---:|---|---|---:|---:|')
         for bag in args.bags:
-            post = posterior_from_scene(load_bag(BAG_DIR / f'{bag}.mcap'))[0]
+            post = posterior_from_scene(load_bag(BAG_DIR / f'{bag}.mcap'),
+                                        SensingParams(grid_size=max(int(args.grid_size), 0)))[0]
             res = {p: time_parts(post, args.repeats, p) for p in (np.float32, np.float64)}
             for part in res[np.float32]:
                 print(f'| {bag} | 1000 | rank {post.cov_factor.shape[1]} | {part} | {_ms(res[np.float32][part])} | '
