@@ -162,6 +162,17 @@ def footprint_outlines(intr: CameraIntrinsics, comp: np.ndarray, depth: np.ndarr
 
     Raises:
         ValueError: the component has no return of the true shape, or fewer than 10 usable points."""
+    vs, us = np.nonzero(comp)
+    if vs.size < 10:
+        raise ValueError('fewer than 10 usable ground-truth points on its mask component')
+    # the work is the component's: its bounding box and a margin wider than the silhouette ring and the corners read
+    margin = 4
+    v0, v1 = max(int(vs.min()) - margin, 0), min(int(vs.max()) + margin + 1, comp.shape[0])
+    u0, u1 = max(int(us.min()) - margin, 0), min(int(us.max()) + margin + 1, comp.shape[1])
+    intr = CameraIntrinsics(intr.fx, intr.fy, intr.cx - u0, intr.cy - v0, u1 - u0, v1 - v0)
+    comp, depth = comp[v0:v1, u0:u1], depth[v0:v1, u0:u1]
+    if anchor_px is not None:
+        anchor_px = (anchor_px[0] - u0, anchor_px[1] - v0)
     heights = _surface_heights(intr.rays(), comp, depth, table)
     comp = comp & (heights > -BELOW_TABLE_M)  # points below the table are depth errors
     if comp.sum() < 10:

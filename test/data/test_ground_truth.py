@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import pytest
 from scipy.ndimage import label as components
@@ -312,6 +313,30 @@ def test_an_object_the_mask_merged_with_the_target_is_an_obstacle():
     assert iou(truth.sdf < 0, a.inside(centres)) >= 0.93
     assert iou(truth.obstacles < 0, b.inside(centres)) >= 0.9
     assert truth.obstacles[a.inside(centres)].min() > 0.003  # the target's cells are not the obstacle's
+
+
+def test_label_specks_are_no_objects():
+    """A label with 150 one-to-four-pixel specks scattered over the table (a noisy mask): none is an object of the
+    truth (each is under 10 pixels: not built), and the target's truth is the one of the clean label bit for bit."""
+    prism = CASES[2]
+    depth, mask = prism.render()
+    capture = ri.Capture(np.zeros((*depth.shape, 3), np.uint8), depth, prism.camera)
+    v, u = np.nonzero(mask)
+    k = int(np.argmin((u - u.mean()) ** 2 + (v - v.mean()) ** 2))
+    clean = ri.ground_truth_from_mask(capture, mask, np.where(mask, depth, np.nan), (u[k], v[k]), prism.table)
+    rng = np.random.default_rng(4)
+    noisy = mask.copy()
+    far = cv2.dilate(mask.astype(np.uint8), np.ones((41, 41), np.uint8)) == 0
+    fv, fu = np.nonzero(far[2:-2, 2:-2])
+    for i in rng.choice(fv.size, 150, replace=False):
+        h, w = (int(x) for x in rng.integers(1, 3, 2))
+        noisy[fv[i] + 2:fv[i] + 2 + h, fu[i] + 2:fu[i] + 2 + w] = True
+    n_specks = components(noisy & ~mask, structure=np.ones((3, 3)))[1]
+    truth = ri.ground_truth_from_mask(capture, noisy, np.where(noisy | mask, depth, np.nan), (u[k], v[k]),
+                                      prism.table)
+    assert np.array_equal(truth.sdf, clean.sdf) and truth.obstacles is None
+    assert truth.obstacles_unbuilt == n_specks > 100 and truth.obstacle_objects == 0
+
 
 if __name__ == '__main__':
     for case in CASES:
