@@ -116,11 +116,13 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         for seed, ev in zip(seeds, evs, strict=True):
             executed = ev.outcome.describe() if ev.outcome else f'0/{ev.trials} in force closure (no grasp)'
+            truth_clear = ('none in the truth' if np.isinf(ev.true_clearance_m) else
+                           f'of the truth {ev.true_clearance_m * 1000:.0f} mm')
             print(f'{ev.bag}{" (planned on the ground truth)" if args.oracle else ""} seed {seed}: tilt '
                   f'{ev.tilt_deg:.1f} deg, {ev.objects_seen} object(s) seen; target occupancy IoU '
                   f'{ev.occupancy_iou:.2f}, mean-shape IoU {ev.mean_shape_iou:.2f}; {args.method} {executed} '
-                  f'on the true shape (P_F {ev.p_f:.2f}); nearest other object '
-                  f'{ev.jaw_clearance_m * 1000:.0f} mm from a jaw {ev.message}')
+                  f'on the true shape (P_F {ev.p_f:.2f}); nearest other object seen '
+                  f'{ev.jaw_clearance_m * 1000:.0f} mm from a jaw, {truth_clear} {ev.message}')
         if len(evs) > 1:
             wins = [e.successes for e in evs]
             print(f'seeds {args.seed}-{args.seed + args.seeds - 1}: successes {wins}, mean {np.mean(wins):.1f} of '

@@ -142,6 +142,10 @@ def test_evaluate_real_on_the_shipped_bags(tmp_path, capsys):
             assert 0.0 <= f['closures'] <= 4 and 0.0 <= f['p_f'] <= 1.0 and 0.0 <= f['gap'] <= 1.0
         assert u['objects_seen'] >= 3 and (math.isinf(u['jaw_clearance_mm']) or u['jaw_clearance_mm'] > 5.0)
     assert units['cleargrasp_000000080_bottle']['occupancy_iou'] > 0.5  # bags/real/README.md: 0.60
+    # the bottle's truth has its upright neighbour (47 mm from the target), the flower box's none
+    assert 5.0 < units['cleargrasp_000000080_bottle']['true_clearance_mm'] < 200.0
+    assert math.isinf(units['cleargrasp_000000123_flower_box']['true_clearance_mm'])
+    assert 'true clearance (mm)' in text.splitlines()[0]
     rows = result['rows']
     assert len(rows) == 4 and all(0 <= r['successes'] <= r['trials'] == 4 for r in rows)
     # every execution of a grasp is counted once: closed, or failed by collision, miss or slip
@@ -166,7 +170,7 @@ def test_the_oracle_plans_in_the_truths_world(tmp_path):
     """A labelled neighbour 8 mm beside the target: the truth carries it as an obstacle, sampled at the planning
     grid it is the oracle posterior's obstacle (negative on the neighbour's cells, positive on the target's), and
     the perceived scene has it too; a grasp whose jaw starts in it fails every execution as a collision."""
-    from gpis_grasp_ros.tools.evaluation.real import prepare_real, sensing_params
+    from gpis_grasp_ros.tools.evaluation.real import evaluate_grasp, prepare_real, sensing_params
 
     target, second = Box(0.0, 0.01, 0.03, 0.02, 0.04), Box(0.05, 0.01, 0.012, 0.02, 0.03, rgb=(200.0, 60.0, 40.0))
     scene = TiltedScene(45.0, distance_m=0.6, boxes=[target, second], width=480, height=360, focal_px=450.0)
@@ -197,3 +201,7 @@ def test_the_oracle_plans_in_the_truths_world(tmp_path):
     away = centre_t - 0.035 * (centre_ob - centre_t) / np.linalg.norm(centre_ob - centre_t)
     out = rf.true_shape.execute_outcome(away, centre_ob, rf.gripper, 20, np.random.default_rng(0))
     assert out.collision == 20 and out.closed == 0, out
+    # the grasps planned on the oracle and on the perception keep their jaw centres out of the true neighbour
+    for oracle in (True, False):
+        ev = evaluate_grasp(rf, 'gp-gpis-opt', 0, 10, oracle)
+        assert np.isfinite(ev.true_clearance_m) and ev.true_clearance_m > 0.0, ev

@@ -4,8 +4,9 @@ Per unit (capture × variant): the perceived IoUs, per method the closures (mean
 of ``trials`` simulated executions), the mean P_F and the mean |P_F − closure rate| over the seeds' grasps, how the
 other executions failed (mean over seeds: a jaw in collision with the target or another object, a jaw missing the
 target, contacts that slip: :class:`~gpis_grasp_ros.sim.execution.ExecutionOutcome`), the
-oracle's closures and P_F, the nearest other object to a jaw (smallest over the perceived grasps), objects
-seen, the refusal reason and the summed task time. A seed without a grasp closes 0 and has no P_F.
+oracle's closures and P_F, the nearest other object to a jaw centre (smallest over the perceived grasps): seen
+by the perception, and of the truth (its obstacle distance at the jaw; 'none seen' without another true object),
+objects seen, the refusal reason and the summed task time. A seed without a grasp closes 0 and has no P_F.
 """
 
 from __future__ import annotations
@@ -32,6 +33,13 @@ def _method_figures(sel: Sequence[dict[str, Any]]) -> dict[str, float]:
             **{k: _mean([r.get(k, math.nan) for r in sel]) for k in FAILURES}}
 
 
+def _smallest_mm(rows: Sequence[dict[str, Any]], key: str) -> float:
+    """Smallest finite or infinite ``key`` (m) over ``rows``, in mm (NaN when no row has one)."""
+    values = [r.get(key) for r in rows]
+    values = [v for v in values if v is not None and not math.isnan(v)]
+    return 1000.0 * min(values) if values else math.nan
+
+
 def aggregate(rows: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool) -> list[dict[str, Any]]:
     """One summary dict per unit, in the rows' order."""
     units: dict[str, list[dict[str, Any]]] = {}
@@ -45,15 +53,14 @@ def aggregate(rows: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bo
                              'time_s': float(sum(r['task_time_s'] for r in sel))}
         if first['status'] == 'refused':
             u.update({'occupancy_iou': math.nan, 'mean_shape_iou': math.nan, 'objects_seen': None,
-                      'jaw_clearance_mm': math.nan, 'methods': {}, 'oracle': None})
+                      'jaw_clearance_mm': math.nan, 'true_clearance_mm': math.nan, 'methods': {}, 'oracle': None})
             out.append(u)
             continue
         perceived = [r for r in sel if not r['oracle']]
-        clear = [r['jaw_clearance_m'] for r in perceived if r['jaw_clearance_m'] is not None
-                 and not math.isnan(r['jaw_clearance_m'])]
         u.update({'occupancy_iou': first['occupancy_iou'], 'mean_shape_iou': first['mean_shape_iou'],
                   'objects_seen': first['objects_seen'], 'tilt_deg': first['tilt_deg'],
-                  'jaw_clearance_mm': 1000.0 * min(clear) if clear else math.nan,
+                  'jaw_clearance_mm': _smallest_mm(perceived, 'jaw_clearance_m'),
+                  'true_clearance_mm': _smallest_mm(perceived, 'true_clearance_m'),
                   'methods': {m: _method_figures([r for r in perceived if r['method'] == m]) for m in methods},
                   'oracle': _method_figures([r for r in sel if r['oracle']]) if oracle else None})
         out.append(u)
@@ -82,7 +89,7 @@ def table(units: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool)
         head += [f'{m} closures /{trials}', f'{m} P_F', f'{m} \\|P_F − rate\\|', f'{m} collision / missed / slipped']
     if oracle:
         head += [f'oracle closures /{trials}', 'oracle P_F']
-    head += ['jaw clearance (mm)', 'objects seen', 'refused', 'time (s)']
+    head += ['jaw clearance (mm)', 'true clearance (mm)', 'objects seen', 'refused', 'time (s)']
     lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     for u in units:
         cells = [u['capture'], u['variant'], _f(u['occupancy_iou']), _f(u['mean_shape_iou'])]
@@ -93,7 +100,8 @@ def table(units: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool)
             o = u['oracle']
             cells += ['–', '–'] if o is None else [_f(o['closures'], '.1f'), _f(o['p_f'])]
         refusal = u['refusal'].replace('|', '/')
-        cells += [_f(u['jaw_clearance_mm'], '.0f'), _f(u['objects_seen'], 'd'), refusal or '', _f(u['time_s'], '.0f')]
+        cells += [_f(u['jaw_clearance_mm'], '.0f'), _f(u['true_clearance_mm'], '.1f'), _f(u['objects_seen'], 'd'),
+                  refusal or '', _f(u['time_s'], '.0f')]
         lines.append('| ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
 

@@ -91,6 +91,7 @@ def run_real_task(task: Task, attempt: int = 1) -> dict[str, Any]:
             row.update({'status': 'refused', 'refusal': refusal, 'successes': 0, **dict.fromkeys(FAILURES, 0),
                         'p_f': math.nan,
                         'occupancy_iou': math.nan, 'mean_shape_iou': math.nan, 'jaw_clearance_m': math.nan,
+                        'true_clearance_m': math.nan,
                         'objects_seen': None, 'tilt_deg': math.nan, 'message': ''})
         else:
             ev = evaluate_grasp(rf, ORACLE_PLANNER if oracle else task.method, int(task.seed), trials, oracle)
@@ -98,6 +99,7 @@ def run_real_task(task: Task, attempt: int = 1) -> dict[str, Any]:
             row.update({'status': 'ok' if math.isfinite(ev.p_f) else 'no_grasp', 'refusal': '',
                         'successes': ev.successes, **failures, 'p_f': ev.p_f, 'occupancy_iou': ev.occupancy_iou,
                         'mean_shape_iou': ev.mean_shape_iou, 'jaw_clearance_m': ev.jaw_clearance_m,
+                        'true_clearance_m': ev.true_clearance_m,
                         'objects_seen': int(ev.objects_seen), 'tilt_deg': float(ev.tilt_deg), 'message': ev.message})
         row.update({'prepare_time_s': 0.0 if cached else prepare_s, 'task_time_s': time.perf_counter() - t0})
     outcome = (f"refused ({row['refusal']})" if rf is None else

@@ -45,6 +45,9 @@ class RealEvaluation:
     tilt_deg: float
     message: str = ''
     outcome: ExecutionOutcome | None = None  # how the executions failed (None: no grasp)
+    #: smallest distance (m) from a jaw centre to another object of the truth (its obstacle distance there; negative:
+    #: the jaw is inside one), inf when the truth has no other object, NaN without a grasp
+    true_clearance_m: float = float('nan')
 
 
 @dataclass
@@ -130,8 +133,10 @@ def evaluate_grasp(rf: RealFit, method: str, seed: int, trials: int = 20, oracle
     others = rf.others
     clearance = (float(min(np.linalg.norm(others - np.asarray(j), axis=1).min() for j in (grasp.jaw1, grasp.jaw2)))
                  if len(others) else float('inf'))
+    true_d = rf.true_shape.obstacles_at(np.stack([grasp.jaw1, grasp.jaw2]))
+    true_clearance = float('inf') if true_d is None else float(true_d.min())
     return RealEvaluation(rf.name, rf.occupancy_iou, rf.mean_shape_iou, outcome.closed, trials, float(grasp.p_f),
-                          clearance, result.objects_seen, result.table.tilt_deg, grasp.message, outcome)
+                          clearance, result.objects_seen, result.table.tilt_deg, grasp.message, outcome, true_clearance)
 
 
 def evaluate_bag(path: str | Path, target_px: tuple[float, float], sensor: str = 'realsense_d400',
