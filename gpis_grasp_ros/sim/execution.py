@@ -59,6 +59,16 @@ def execute_grasp_outcome(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw
     fails every trial. ``obstacles`` (m, on ``true_geometry``): the signed distance to the other objects, which
     the jaws may neither start in nor close on (a trial that does fails), as in the planner's world.
     """
+    sdf = np.asarray(true_sdf, dtype=np.float64)
+    com = sdf_center_of_mass(sdf[None], true_geometry)[0] if center_of_mass is None else np.asarray(center_of_mass)
+    return outcome_on_bank(SdfBank(sdf, true_geometry, obstacles=obstacles), com, torque_scale(sdf, true_geometry, com),
+                           jaw1, jaw2, gripper, trials, rng)
+
+
+def outcome_on_bank(bank: SdfBank, com: np.ndarray, rho: float, jaw1: np.ndarray, jaw2: np.ndarray,
+                    gripper: GripperParams, trials: int, rng: np.random.Generator) -> ExecutionOutcome:
+    """:func:`execute_grasp_outcome` on a prepared truth: its bank (grid 0, with the obstacles), centre of mass and
+    torque scale ρ (m), built once for many grasps."""
     jaw1 = np.asarray(jaw1, dtype=np.float64).reshape(2)
     jaw2 = np.asarray(jaw2, dtype=np.float64).reshape(2)
     trials = max(int(trials), 0)
@@ -66,10 +76,6 @@ def execute_grasp_outcome(true_sdf: np.ndarray, true_geometry: GridGeometry, jaw
         return ExecutionOutcome(0)
     if np.linalg.norm(jaw2 - jaw1) > gripper.max_opening * (1 + 1e-9) + 1e-12:
         return ExecutionOutcome(trials, too_wide=trials)
-    sdf = np.asarray(true_sdf, dtype=np.float64)
-    bank = SdfBank(sdf, true_geometry, obstacles=obstacles)
-    com = sdf_center_of_mass(sdf[None], true_geometry)[0] if center_of_mass is None else np.asarray(center_of_mass)
-    rho = torque_scale(sdf, true_geometry, com)
     eps = rng.standard_normal((trials, 2, 2))
     g1, g2 = perturb_grasps(jaw1, jaw2, eps, gripper.sigma_g)
     con = find_contacts(bank, g1, g2, gripper, check_opening=False)

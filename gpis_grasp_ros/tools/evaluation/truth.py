@@ -13,7 +13,7 @@ from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.gripper import GripperParams
 from gpis_grasp_ros.core.quality import ferrari_canny_l1, torque_scale
 from gpis_grasp_ros.core.sdf_bank import SdfBank, bilinear
-from gpis_grasp_ros.sim.execution import ExecutionOutcome, execute_grasp_outcome
+from gpis_grasp_ros.sim.execution import ExecutionOutcome, outcome_on_bank
 
 
 class TrueShape:
@@ -104,10 +104,10 @@ class TrueShape:
 
         ``center_of_mass`` (true grid, m) replaces that of {sdf < 0} (e.g. the scene's recorded one);
         ``snap_aligned`` as in :meth:`to_true`."""
-        com = self.com if center_of_mass is None else center_of_mass
-        return execute_grasp_outcome(self.sdf, self.geometry, self.to_true(jaw1, snap_aligned),
-                                     self.to_true(jaw2, snap_aligned), gripper, trials, rng, center_of_mass=com,
-                                     obstacles=self.obstacles)
+        com = self.com if center_of_mass is None else np.asarray(center_of_mass, dtype=np.float64)
+        rho = self.rho if center_of_mass is None else torque_scale(self.sdf, self.geometry, com)
+        return outcome_on_bank(self.bank, com, rho, self.to_true(jaw1, snap_aligned),
+                               self.to_true(jaw2, snap_aligned), gripper, trials, rng)
 
     def outline(self) -> list[np.ndarray]:
         """Boundary polylines of {sdf < 0} in planning-grid metres (outer outlines and holes)."""
