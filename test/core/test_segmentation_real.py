@@ -428,3 +428,51 @@ def test_an_extension_running_out_of_the_image_is_dropped():
     assert not _bounded_extension(target, out, params).any()
     roi = dataclasses.replace(params, roi_px=(0, 0, 79, 42))  # the ROI's lower edge cuts the inside region
     assert not _bounded_extension(target, inside, roi).any()
+
+
+def _clear_slab_frame(half_width: float, tint_box: Box | None = None) -> tuple[np.ndarray, np.ndarray, TiltedScene,
+                                                                              np.ndarray, np.ndarray]:
+    """A clear slab (80 mm x 2 ``half_width``) lying on the table at 45 degrees: the table's depth everywhere but a
+    stripe of holes along its middle, its colour desaturated; with ``tint_box``, an opaque box with a patch of the
+    same tint on the table beside it. Returns rgb, depth, scene, the slab's and the table's (x, y) per pixel."""
+    scene = TiltedScene(45.0, boxes=[] if tint_box is None else [tint_box])
+    rgb, depth, _ = scene.frames(1, seed=6)
+    rgb, depth = rgb[0].astype(np.float64), depth[0].copy()
+    xy = scene.table_xy(scene.intrinsics.rays() * depth[..., None])
+    slab = (np.abs(xy[..., 0]) < 0.04) & (np.abs(xy[..., 1] - 0.03) < half_width)
+    stripe = slab & (np.abs(xy[..., 1] - 0.03) < 0.004)
+    tinted = slab.copy()
+    if tint_box is not None:  # a tinted patch on the table touching the box's -x side
+        tinted |= ((xy[..., 0] > tint_box.x - tint_box.half_x - 0.03) & (xy[..., 0] < tint_box.x - tint_box.half_x)
+                   & (np.abs(xy[..., 1] - tint_box.y) < 0.015))
+    rgb[tinted] = 0.5 * rgb[tinted] + 0.5 * np.array([170.0, 175.0, 180.0])
+    depth[stripe] = np.nan
+    return rgb.astype(np.uint8), depth, scene, slab, xy
+
+
+def _pixel_at(xy: np.ndarray, x: float, y: float) -> tuple[float, float]:
+    v, u = np.unravel_index(np.argmin(np.hypot(xy[..., 0] - x, xy[..., 1] - y)), xy.shape[:2])
+    return float(u), float(v)
+
+
+def test_a_target_pixel_on_a_clear_body_seen_through_selects_it():
+    """A click on the body of a clear slab, 20 mm from the only part with depth evidence (its specular stripe, more
+    than target_tolerance_m away), selects the slab and gives the same object as a click on the stripe; a click on
+    the bare table as far away is refused as before, and so is a click on a tinted patch that touches only an
+    opaque box (the link is to clear objects, whose body the segmentation grows over such pixels)."""
+    rgb, depth, scene, slab, xy = _clear_slab_frame(0.026)
+    params = SensingParams(target='pixel', target_point=(0.0, 0.0), transparent_close_m=0.001, color_threshold_min=200.0)
+    on_stripe = segment_frames(rgb, depth, scene.intrinsics,
+                               dataclasses.replace(params, target_point=_pixel_at(xy, 0.0, 0.03)))
+    on_body = segment_frames(rgb, depth, scene.intrinsics,
+                             dataclasses.replace(params, target_point=_pixel_at(xy, 0.02, 0.05)))
+    assert on_body.object_mask[slab].mean() > 0.95
+    assert np.array_equal(on_body.object_mask, on_stripe.object_mask)
+    with pytest.raises(ValueError, match='on no object'):
+        segment_frames(rgb, depth, scene.intrinsics, dataclasses.replace(params, target_point=_pixel_at(xy, 0.02, -0.01)))
+    box = Box(0.0, -0.04, 0.015, 0.015, 0.03, rgb=(200.0, 190.0, 60.0))
+    rgb, depth, scene, slab, xy = _clear_slab_frame(0.026, tint_box=box)
+    segment_frames(rgb, depth, scene.intrinsics, dataclasses.replace(params, target_point=_pixel_at(xy, 0.0, 0.03)))
+    with pytest.raises(ValueError, match='on no object'):
+        segment_frames(rgb, depth, scene.intrinsics,
+                       dataclasses.replace(params, target_point=_pixel_at(xy, box.x - box.half_x - 0.025, box.y)))

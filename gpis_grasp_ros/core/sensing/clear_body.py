@@ -11,7 +11,12 @@ import numpy as np
 
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
-from gpis_grasp_ros.core.sensing.evidence import Evidence, chromaticity_distance
+from gpis_grasp_ros.core.sensing.evidence import (
+    Evidence,
+    _bounded_extension,
+    chromatic_extension,
+    chromaticity_distance,
+)
 from gpis_grasp_ros.core.sensing.morphology import _filled
 from gpis_grasp_ros.core.sensing.objects import Objects, _Raster, in_contact, minimum_width
 from gpis_grasp_ros.core.sensing.occlusion import Feet
@@ -54,56 +59,6 @@ def seen_through(raster: _Raster, target: int, foot_xy: np.ndarray, px_labels: n
     ix, iy, ok = raster.cell(foot_xy)
     free = (px_labels == 0) | (px_labels == target)
     return ok & free & table_level & interior[iy, ix]
-
-
-def chromatic_extension(target_px: np.ndarray, candidate: np.ndarray, chroma_z: np.ndarray, z_min: float,
-                        core_px: int = CHROMA_CORE_PX) -> np.ndarray:
-    """Pixels of a clear target seen only as a change of the table's chromaticity, grown from the target.
-
-    A transparent object lying on the table returns the table's depth through its body, and its colour
-    test (:func:`shadow_line_distance`) passes only where it is specular; the body is seen as the table's
-    colour desaturated by the plastic. ``chroma_z`` (:func:`chromaticity_distance`) > ``z_min`` marks such
-    pixels among the ``candidate`` pixels (table-level, not another object's evidence), opened with a 3 x 3
-    disc (isolated texture specks go); the result is the 8-connected regions of them that touch the
-    target's pixels ``target_px`` and hold a disc of ``core_px`` pixels (a band of mixed pixels along an
-    opaque object's seen edge does not). The region is grown in the image from the target, so chromatic
-    pixels elsewhere (texture, other clear objects) never become evidence; other objects' evidence pixels
-    are not candidates, so the growth stops at them. Limits: a clear object standing on a table of its
-    own tint is not seen this way, and the region leaks along chromatic table pixels that touch the body
-    (the base of another clear object seen through, behind it) - the threshold bounds how far."""
-    grow = ((chroma_z > z_min) & candidate & ~target_px).astype(np.uint8)
-    grow = cv2.morphologyEx(grow, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))) > 0
-    if not grow.any():
-        return np.zeros_like(grow)
-    n, lab = cv2.connectedComponents(grow.astype(np.uint8), connectivity=8)
-    touching = cv2.dilate(target_px.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    # a band along the target's seen edge (mixed pixels, a shading rim) has no core: only regions holding a
-    # disc of ``core_px`` pixels are a body seen through
-    core = cv2.erode(grow.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (core_px, core_px)),
-                     borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    keep = np.zeros(n, dtype=bool)
-    keep[np.unique(lab[touching & grow])] = True
-    has_core = np.zeros(n, dtype=bool)
-    has_core[np.unique(lab[core])] = True
-    keep &= has_core
-    keep[0] = False
-    # gaps enclosed by the body and the target (a label, a highlight) are body too
-    return _filled(keep[lab] | target_px) & candidate & ~target_px
-
-
-def _bounded_extension(target_px: np.ndarray, extension: np.ndarray, params: SensingParams) -> np.ndarray:
-    """The chromatic extension, or nothing when it reaches the image (or pixel ROI) border: a region that
-    runs out of the image is not the enclosed body of the target (the table's own colour changing)."""
-    if not extension.any():
-        return extension
-    h, w = extension.shape
-    b = params.border_px
-    u_lo, v_lo, u_hi, v_hi = (0, 0, w - 1, h - 1) if params.roi_px is None else \
-        (max(0, params.roi_px[0]), max(0, params.roi_px[1]), min(w - 1, params.roi_px[2]), min(h - 1, params.roi_px[3]))
-    vs, us = np.nonzero(extension)
-    if us.min() < u_lo + b or vs.min() < v_lo + b or us.max() > u_hi - b or vs.max() > v_hi - b:
-        return np.zeros_like(extension)
-    return extension
 
 
 def prism_footprint(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,
@@ -254,6 +209,47 @@ class Target(NamedTuple):
     others_px: np.ndarray  # (H, W) bool, the other objects' pixels seen in depth above the table (kept objects)
 
 
+def _clear_fragments(target_px: np.ndarray, through: np.ndarray, objects: Objects, frames: AveragedFrames,
+                     fit: TableFit, ev: Evidence, table_level: np.ndarray, foot_xy: np.ndarray,
+                     params: SensingParams) -> tuple[np.ndarray, np.ndarray]:
+    """The other clear fragments of a clear target's body and the body seen through (``through`` with the
+    chromatic extension), grown together.
+
+    A clear body falls apart into fragments (a specular ridge, holes at its ends, its cap) joined only by the table
+    seen through it: each fragment's extension stops at the others' pixels (they are not candidates), so grown
+    from one fragment the body would depend on which one the target pixel fell on. The extension is grown again
+    from every clear fragment it touches (fewer than ``CHROMA_CLEAR_FRACTION`` of its pixels seen in depth) until
+    it reaches no new one; objects seen in depth stop it as before. The fragments join the target's clear parts
+    (:func:`_touching_clear_parts`), not its pixels."""
+    raster, px_labels, kept = objects.raster, objects.px_labels, objects.kept
+    chroma_z = chromaticity_distance(frames.rgb_mean, fit.inlier)[0]
+    n_lab = int(px_labels.max()) + 1
+    seen = np.bincount(px_labels.ravel(), weights=(ev.p_d > 0.5).ravel(), minlength=n_lab)
+    clear = np.zeros(n_lab, dtype=bool)
+    clear[kept] = seen[kept] < CHROMA_CLEAR_FRACTION * np.bincount(px_labels.ravel(), minlength=n_lab)[kept]
+    rx, ry, r_ok = raster.cell(foot_xy)  # not over another object's cells in the table plane either
+    under = np.where(r_ok, raster.labels[ry, rx], 0)
+    members = np.zeros(n_lab, dtype=bool)
+    members[objects.target] = True
+    members[0] = True  # unlabelled pixels are candidates
+    ring = np.ones((3, 3), np.uint8)
+    grown = np.zeros_like(target_px), through
+    while True:
+        mine = members[px_labels] & (px_labels > 0)
+        ext = _bounded_extension(target_px, chromatic_extension(
+            target_px | mine | through, table_level & members[px_labels] & members[under] & r_ok, chroma_z,
+            params.chroma_z_min), params)
+        if mine.sum() > target_px.sum() and not ext.any():  # the fragments' extension runs out of the image
+            return grown
+        grown = mine & ~target_px, through | ext
+        reached = (cv2.dilate((ext | through).astype(np.uint8), ring) > 0) & (px_labels > 0)
+        new = np.unique(px_labels[reached])
+        new = new[clear[new] & ~members[new]]
+        if new.size == 0:
+            return grown
+        members[new] = True
+
+
 def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: Measurement, ev: Evidence,
                 occ: np.ndarray, missing_px: np.ndarray, feet: Feet, intrinsics: CameraIntrinsics,
                 params: SensingParams) -> Target:
@@ -264,20 +260,17 @@ def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: M
     table_level = valid & (p_d <= 0.5) & (np.abs(np.nan_to_num(meas.height)) <= fit.h_thr)
     through = seen_through(raster, target, foot_xy, px_labels, table_level, params.transparent_close_m)
     depth_fraction = float(np.mean(p_d[target_px] > 0.5))
+    fragments = np.zeros_like(target_px)
     if params.chroma_z_min > 0 and depth_fraction < CHROMA_CLEAR_FRACTION:  # a clear target's body
-        chroma_z = chromaticity_distance(frames.rgb_mean, fit.inlier)[0]
-        rx, ry, r_ok = raster.cell(foot_xy)  # not over another object's cells in the table plane either
-        under = np.where(r_ok, raster.labels[ry, rx], 0)
-        through |= _bounded_extension(target_px, chromatic_extension(
-            target_px | through, table_level & ((px_labels == 0) | (px_labels == target))
-            & ((under == 0) | (under == target)) & r_ok, chroma_z, params.chroma_z_min), params)
+        fragments, through = _clear_fragments(target_px, through, objects, frames, fit, ev, table_level, foot_xy,
+                                              params)
     target_px, occ, p_c = target_px | through, np.where(through, 1.0, occ), np.where(through, 1.0, p_c)
     target_xy = foot_xy[target_px]
     body_height, clear_target = 0.0, False
     if params.clear_body_prism and depth_fraction < CHROMA_CLEAR_FRACTION:
         # a clear body: with its clear parts, less than CLEAR_BODY_FRACTION of it seen in depth (a partly clear
         # object - the paper's Object A - keeps its clear part uncertain)
-        whole = target_px | _touching_clear_parts(target_px, missing_px, p_d > 0.5, px_labels, target)
+        whole = target_px | fragments | _touching_clear_parts(target_px, missing_px, p_d > 0.5, px_labels, target)
         clear_target = bool(np.mean(p_d[whole] > 0.5) < CLEAR_BODY_FRACTION)
     if clear_target:
         # the body's silhouette: its parts closed over gaps narrower than a body's core disc, holes filled

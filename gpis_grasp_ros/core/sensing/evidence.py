@@ -10,7 +10,14 @@ import numpy as np
 from scipy.special import ndtr
 
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames
-from gpis_grasp_ros.core.sensing.params import CHROMA_DARK, CHROMA_MIN_SIGMA, CHROMA_SMOOTH_PX, SensingParams
+from gpis_grasp_ros.core.sensing.morphology import _filled
+from gpis_grasp_ros.core.sensing.params import (
+    CHROMA_CORE_PX,
+    CHROMA_DARK,
+    CHROMA_MIN_SIGMA,
+    CHROMA_SMOOTH_PX,
+    SensingParams,
+)
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
 
@@ -150,3 +157,53 @@ def combine(ev: Evidence, missing_px: np.ndarray, params: SensingParams) -> tupl
     rho = np.where(missing_px, 0.0, np.abs(p_d - p_c))
     occ = np.where(missing_px, 1.0, occ)
     return occ, rho
+
+
+def chromatic_extension(target_px: np.ndarray, candidate: np.ndarray, chroma_z: np.ndarray, z_min: float,
+                        core_px: int = CHROMA_CORE_PX) -> np.ndarray:
+    """Pixels of a clear target seen only as a change of the table's chromaticity, grown from the target.
+
+    A transparent object lying on the table returns the table's depth through its body, and its colour
+    test (:func:`shadow_line_distance`) passes only where it is specular; the body is seen as the table's
+    colour desaturated by the plastic. ``chroma_z`` (:func:`chromaticity_distance`) > ``z_min`` marks such
+    pixels among the ``candidate`` pixels (table-level, not another object's evidence), opened with a 3 x 3
+    disc (isolated texture specks go); the result is the 8-connected regions of them that touch the
+    target's pixels ``target_px`` and hold a disc of ``core_px`` pixels (a band of mixed pixels along an
+    opaque object's seen edge does not). The region is grown in the image from the target, so chromatic
+    pixels elsewhere (texture, other clear objects) never become evidence; other objects' evidence pixels
+    are not candidates, so the growth stops at them. Limits: a clear object standing on a table of its
+    own tint is not seen this way, and the region leaks along chromatic table pixels that touch the body
+    (the base of another clear object seen through, behind it) - the threshold bounds how far."""
+    grow = ((chroma_z > z_min) & candidate & ~target_px).astype(np.uint8)
+    grow = cv2.morphologyEx(grow, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))) > 0
+    if not grow.any():
+        return np.zeros_like(grow)
+    n, lab = cv2.connectedComponents(grow.astype(np.uint8), connectivity=8)
+    touching = cv2.dilate(target_px.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    # a band along the target's seen edge (mixed pixels, a shading rim) has no core: only regions holding a
+    # disc of ``core_px`` pixels are a body seen through
+    core = cv2.erode(grow.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (core_px, core_px)),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    keep = np.zeros(n, dtype=bool)
+    keep[np.unique(lab[touching & grow])] = True
+    has_core = np.zeros(n, dtype=bool)
+    has_core[np.unique(lab[core])] = True
+    keep &= has_core
+    keep[0] = False
+    # gaps enclosed by the body and the target (a label, a highlight) are body too
+    return _filled(keep[lab] | target_px) & candidate & ~target_px
+
+
+def _bounded_extension(target_px: np.ndarray, extension: np.ndarray, params: SensingParams) -> np.ndarray:
+    """The chromatic extension, or nothing when it reaches the image (or pixel ROI) border: a region that
+    runs out of the image is not the enclosed body of the target (the table's own colour changing)."""
+    if not extension.any():
+        return extension
+    h, w = extension.shape
+    b = params.border_px
+    u_lo, v_lo, u_hi, v_hi = (0, 0, w - 1, h - 1) if params.roi_px is None else \
+        (max(0, params.roi_px[0]), max(0, params.roi_px[1]), min(w - 1, params.roi_px[2]), min(h - 1, params.roi_px[3]))
+    vs, us = np.nonzero(extension)
+    if us.min() < u_lo + b or vs.min() < v_lo + b or us.max() > u_hi - b or vs.max() > v_hi - b:
+        return np.zeros_like(extension)
+    return extension

@@ -16,9 +16,15 @@ from scipy.sparse.csgraph import connected_components
 from scipy.special import ndtri
 
 from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
-from gpis_grasp_ros.core.sensing.evidence import Evidence
+from gpis_grasp_ros.core.sensing.evidence import (
+    Evidence,
+    _bounded_extension,
+    chromatic_extension,
+    chromaticity_distance,
+)
 from gpis_grasp_ros.core.sensing.morphology import _filled, _flood, _nearest_label, _reconstruct
 from gpis_grasp_ros.core.sensing.params import (
+    CHROMA_CLEAR_FRACTION,
     FLAT_JUMP_M,
     FLAT_MIN_AREA_M2,
     FLAT_STEP_M,
@@ -336,6 +342,52 @@ def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, s
     return kept[kept > 0]
 
 
+def clear_object_at(u: int, v: int, px_labels: np.ndarray, kept: np.ndarray, ev: Evidence, meas: Measurement,
+                    fit: TableFit, missing_px: np.ndarray, rgb_mean: np.ndarray, params: SensingParams) -> int:
+    """The clear object whose body, seen through, holds pixel (u, v); 0 if none.
+
+    A clear object lying on the table returns the table's depth through its body, so a pixel on the body is on no
+    object's evidence. The pixel selects an object when the table seen there is tinted as through a clear body
+    (:func:`~.evidence.chromatic_extension` grown from the pixel: a region of changed chromaticity with a core,
+    not running out of the image) and that region touches an object mostly seen without depth, a clear object,
+    whose body :func:`~.clear_body.grow_target` extends over the same kind of pixels. Of several such objects,
+    the nearest to the pixel through the region."""
+    if params.chroma_z_min <= 0:
+        return 0
+    is_object = np.isin(px_labels, kept)
+    table_level = np.isfinite(meas.height) & (ev.p_d <= 0.5) & (np.abs(np.nan_to_num(meas.height)) <= fit.h_thr)
+    seed = np.zeros(px_labels.shape, dtype=bool)
+    seed[v, u] = True
+    chroma_z = chromaticity_distance(rgb_mean, fit.inlier)[0]
+    region = _bounded_extension(seed, chromatic_extension(seed, (table_level | missing_px) & ~is_object, chroma_z,
+                                                          params.chroma_z_min), params)
+    if not region.any():
+        return 0
+    n_lab = int(px_labels.max()) + 1
+    seen = np.bincount(px_labels.ravel(), weights=(ev.p_d > 0.5).ravel(), minlength=n_lab)
+    size = np.bincount(px_labels.ravel(), minlength=n_lab)
+    clear_labels = kept[seen[kept] < CHROMA_CLEAR_FRACTION * size[kept]]
+    if clear_labels.size == 0:
+        return 0
+    # the nearest clear object through the region: grow from the pixel one ring at a time within the region (on
+    # the region's bounding box plus a pixel) until a ring meets a clear object
+    vs, us = np.nonzero(region | seed)
+    box = (slice(max(vs.min() - 1, 0), vs.max() + 2), slice(max(us.min() - 1, 0), us.max() + 2))
+    inside, labels = (region | seed)[box].astype(np.uint8), px_labels[box]
+    clear = np.isin(labels, clear_labels)
+    reach, ring = seed[box].astype(np.uint8), np.ones((3, 3), np.uint8)
+    while True:
+        grown = cv2.dilate(reach, ring)
+        hit = (grown > 0) & clear
+        if hit.any():
+            found, n = np.unique(labels[hit], return_counts=True)
+            return int(found[np.argmax(n)])
+        grown &= inside
+        if np.array_equal(grown, reach):
+            return 0
+        reach = grown
+
+
 def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, params: SensingParams,
                    intr: CameraIntrinsics, kept: np.ndarray) -> tuple[int, int]:
     """Label of the target among the objects ``kept`` and the number of objects seen (``target`` mode)."""
@@ -471,9 +523,11 @@ class Objects(NamedTuple):
 
 def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarray,
                    missing_px: np.ndarray, foot_xy: np.ndarray, footprint: float, intrinsics: CameraIntrinsics,
-                   params: SensingParams) -> Objects:
+                   params: SensingParams, rgb_mean: np.ndarray | None = None) -> Objects:
     """Evidence (o, p_d or p_c > 0.5, or missing) above the plane, on the table's extent and in the region of
-    interest, split into objects in the table plane; the target selected and checked."""
+    interest, split into objects in the table plane; the target selected and checked. With the frame's colour
+    ``rgb_mean``, a target pixel on the body of a clear object seen through selects it (:func:`clear_object_at`)
+    before the nearest object within ``target_tolerance_m`` would."""
     h, w = missing_px.shape
     height, inlier = meas.height, fit.inlier
     evidence = (occ > 0.5) | (ev.p_d > 0.5) | (ev.p_c > 0.5) | missing_px
@@ -502,7 +556,13 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
                                           params.min_object_area_m2)
     solid = solid_pixels(height, meas.s_h, on_plane, fit.h_thr, missing_px & evidence, ratio)
     kept = object_labels(px_labels, raster, foot_xy, solid, params)
-    target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics, kept)
+    target, objects_seen = 0, int(kept.size)
+    if params.target == 'pixel' and rgb_mean is not None:
+        u, v = (int(round(c)) for c in params.target_point)
+        if 0 <= u < w and 0 <= v < h and px_labels[v, u] not in kept:  # not on an object's evidence
+            target = clear_object_at(u, v, px_labels, kept, ev, meas, fit, missing_px, rgb_mean, params)
+    if not target:  # on an object's evidence, or the nearest object within target_tolerance_m
+        target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics, kept)
     target_px = px_labels == target
     _check_target(target_px, foot_xy[target_px], raster.labels == target, raster.res, params, intrinsics)
     return Objects(raster, px_labels, target, objects_seen, target_px, kept)

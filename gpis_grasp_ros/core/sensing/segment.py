@@ -45,7 +45,8 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     missing_px = frames.missing & ~shadow_px  # the sensor's shadow is table it did not measure, not missing
     occ, rho = combine(ev, missing_px, params)  # missing = object
     feet = place_feet(frames, fit, meas, missing_px, shadow_px, intrinsics, footprint)
-    objects = isolate_target(fit, meas, ev, occ, missing_px, feet.foot_xy, footprint, intrinsics, params)
+    objects = isolate_target(fit, meas, ev, occ, missing_px, feet.foot_xy, footprint, intrinsics, params,
+                             frames.rgb_mean)
     target = grow_target(objects, frames, fit, meas, ev, occ, missing_px, feet, intrinsics, params)
     # the grid is sized by the footprint of a pixel on the table under the target (a crop does not change it)
     grid_footprint = pixel_footprint(feet.hit_points[..., 2], fit, intrinsics, target.target_px)
