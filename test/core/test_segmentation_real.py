@@ -461,7 +461,8 @@ def test_a_target_pixel_on_a_clear_body_seen_through_selects_it():
     the bare table as far away is refused as before, and so is a click on a tinted patch that touches only an
     opaque box (the link is to clear objects, whose body the segmentation grows over such pixels)."""
     rgb, depth, scene, slab, xy = _clear_slab_frame(0.026)
-    params = SensingParams(target='pixel', target_point=(0.0, 0.0), transparent_close_m=0.001, color_threshold_min=200.0)
+    params = SensingParams(target='pixel', target_point=(0.0, 0.0), transparent_close_m=0.001,
+                           color_threshold_min=200.0)
     on_stripe = segment_frames(rgb, depth, scene.intrinsics,
                                dataclasses.replace(params, target_point=_pixel_at(xy, 0.0, 0.03)))
     on_body = segment_frames(rgb, depth, scene.intrinsics,
@@ -469,7 +470,8 @@ def test_a_target_pixel_on_a_clear_body_seen_through_selects_it():
     assert on_body.object_mask[slab].mean() > 0.95
     assert np.array_equal(on_body.object_mask, on_stripe.object_mask)
     with pytest.raises(ValueError, match='on no object'):
-        segment_frames(rgb, depth, scene.intrinsics, dataclasses.replace(params, target_point=_pixel_at(xy, 0.02, -0.01)))
+        segment_frames(rgb, depth, scene.intrinsics,
+                       dataclasses.replace(params, target_point=_pixel_at(xy, 0.02, -0.01)))
     box = Box(0.0, -0.04, 0.015, 0.015, 0.03, rgb=(200.0, 190.0, 60.0))
     rgb, depth, scene, slab, xy = _clear_slab_frame(0.026, tint_box=box)
     segment_frames(rgb, depth, scene.intrinsics, dataclasses.replace(params, target_point=_pixel_at(xy, 0.0, 0.03)))
