@@ -206,3 +206,29 @@ def test_normals_from_the_values_equal_the_normals_from_the_gradient_grids(shape
     np.testing.assert_array_equal(fast, ref)
     assert np.all(fast[:, index == 5] == 0) and np.all(fast[0, 40:50] == 0)
     assert np.all(np.abs(np.linalg.norm(fast[:, index != 5], axis=-1)[:, 50:] - 1) < 1e-12)
+
+
+@pytest.mark.parametrize('kind', ['lower', 'full', 'tall'])
+def test_float32_deviations_of_a_triangular_factor_equal_the_general_product(kind) -> None:
+    """A square lower-triangular factor (a full-rank basis' QR triangle) is multiplied by TRMM, any other by
+    GEMM: both give L eps on the float64 stream within float32 rounding, and the triangle's upper zeros are
+    never read (a NaN put there after detection would show)."""
+    from gpis_grasp_ros.core.gpis import KernelParams
+    from gpis_grasp_ros.core.gpis.posterior import GpisPosterior
+
+    g = GridGeometry(0.0, 0.0, 0.004, 6, 5)
+    n = g.width * g.height
+    rng = np.random.default_rng(8)
+    factor = {'lower': np.tril(rng.normal(0.0, 1e-3, (n, n))), 'full': rng.normal(0.0, 1e-3, (n, n)),
+              'tall': rng.normal(0.0, 1e-3, (n, n - 7))}[kind]
+    post = GpisPosterior(g, np.zeros(g.shape), np.ones(g.shape), np.zeros(g.shape + (2,)), factor,
+                         KernelParams(1e-4, 0.02, 0.0))
+    ref = post.sample_deviations(200, np.random.default_rng(2))
+    out = post.sample_deviations(200, np.random.default_rng(2), np.float32)
+    assert post._cov_factor_lower == (kind == 'lower')
+    assert out.dtype == np.float32 and out.shape == ref.shape and out.flags['C_CONTIGUOUS']
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+    if kind == 'lower':
+        post._cov_factor_t32[np.triu_indices(n, 1)] = np.nan
+        again = post.sample_deviations(200, np.random.default_rng(2), np.float32)
+        np.testing.assert_array_equal(again, out)
