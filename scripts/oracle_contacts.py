@@ -1,6 +1,6 @@
 """Why a grasp planned on the truth itself slips: its contacts on the fine truth against the planner's view of it.
 
-    python scripts/oracle_contacts.py MANIFEST --root DATA --unit UNIT [--seeds 0 1 2 3 4] [--trials 20]
+    python scripts/oracle_contacts.py MANIFEST --root DATA --unit UNIT [--seeds 0 1 2 3 4] [--trials 20] [--grid-size M]
 
 For one unit of an ``evaluate-real`` manifest (e.g. ``"gqcnn_single_0|whole"``) and each planner seed, the oracle's
 GP-GPIS-OPT grasp (planned on the truth sampled at the planning grid's cell centres, as ``evaluate-real --oracle``)
@@ -40,11 +40,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--unit', required=True, help='unit id, e.g. "gqcnn_single_0|whole"')
     ap.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
     ap.add_argument('--trials', type=int, default=20)
+    ap.add_argument('--grid-size', type=int, default=0, help='force M of the planning grid (default 0: the cell rule)')
     args = ap.parse_args(argv)
     units = [u for u in load_manifest(args.manifest, args.root) if u.id == args.unit]
     if not units:
         ap.error(f'no unit {args.unit!r} in {args.manifest}')
-    rf, why, _ = _prepared(json.dumps(units[0].entry(), sort_keys=True), 0)
+    rf, why, _ = _prepared(json.dumps(units[0].entry(), sort_keys=True), args.grid_size)
     if rf is None:
         print(f'{args.unit}: refused ({why})')
         return 1
