@@ -122,6 +122,13 @@ def test_raw_manifest_end_to_end_with_kept_bags_and_a_refusal(raw_capture, tmp_p
     assert all('not on the mask' in r for r in rows if r.startswith('| table'))
     assert 'evaluate-real: box [crop] gp-m seed 0:' in captured.err
     assert main([str(m), '--methods', 'no-such-planner']) == 2
+    # --only: the units whose id holds the text; none is an error naming the units there are
+    assert main([str(m), '--methods', 'gp-m', '--seeds', '1', '--trials', '3', '--only', 'box|crop']) == 0
+    captured = capsys.readouterr()
+    assert [r.split('|')[1:3] for r in captured.out.splitlines() if r.startswith('| ')][1:] == [[' box ', ' crop ']]
+    assert main([str(m), '--only', 'no-such-unit']) == 2
+    err = capsys.readouterr().err
+    assert 'matches no unit' in err and 'box|whole, box|crop, table|whole' in err
 
 
 def test_evaluate_real_on_the_shipped_bags(tmp_path, capsys):

@@ -38,6 +38,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    "key, relative to the manifest file; else the manifest's directory)")
     p.add_argument('--methods', default=','.join(DEFAULT_METHODS),
                    help=f"comma-separated planners (default {','.join(DEFAULT_METHODS)})")
+    p.add_argument('--only', action='append', metavar='TEXT',
+                   help="only the units whose id (capture|variant, e.g. 'gqcnn_single_0|whole') contains TEXT; "
+                   'repeat for several (default: every unit)')
     p.add_argument('--seeds', type=int, default=10, help='planner seeds 0 .. N-1 per method (default 10)')
     p.add_argument('--oracle', action='store_true',
                    help='also plan GP-GPIS-OPT on the truth sampled at the planning grid (default: off)')
@@ -95,6 +98,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.grid_size < 0 or 0 < args.grid_size < 3:
             raise ValueError(f'--grid-size must be 0 (from the cell size) or >= 3, got {args.grid_size}')
         units = load_manifest(args.manifest, args.root)
+        if args.only:
+            chosen = [u for u in units if any(text in u.id for text in args.only)]
+            if not chosen:
+                raise ValueError(f"--only {' '.join(args.only)} matches no unit; the manifest's units: "
+                                 f"{', '.join(u.id for u in units)}")
+            units = chosen
     except (ValueError, FileNotFoundError) as exc:
         print(f'evaluate-real: error: {exc}', file=sys.stderr)
         return 2
