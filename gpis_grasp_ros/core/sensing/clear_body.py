@@ -18,7 +18,7 @@ from gpis_grasp_ros.core.sensing.evidence import (
     chromaticity_distance,
 )
 from gpis_grasp_ros.core.sensing.morphology import _filled
-from gpis_grasp_ros.core.sensing.objects import Objects, _Raster, in_contact, minimum_width
+from gpis_grasp_ros.core.sensing.objects import Objects, _Raster, clear_labels, in_contact, minimum_width
 from gpis_grasp_ros.core.sensing.occlusion import Feet
 from gpis_grasp_ros.core.sensing.params import (
     CHROMA_CLEAR_FRACTION,
@@ -221,12 +221,12 @@ def _clear_fragments(target_px: np.ndarray, through: np.ndarray, objects: Object
     from every clear fragment it touches (fewer than ``CHROMA_CLEAR_FRACTION`` of its pixels seen in depth) until
     it reaches no new one; objects seen in depth stop it as before. The fragments join the target's clear parts
     (:func:`_touching_clear_parts`), not its pixels."""
-    raster, px_labels, kept = objects.raster, objects.px_labels, objects.kept
-    chroma_z = chromaticity_distance(frames.rgb_mean, fit.inlier)[0]
+    raster, px_labels = objects.raster, objects.px_labels
+    chroma_z = (chromaticity_distance(frames.rgb_mean, fit.inlier)[0] if objects.chroma_z is None
+                else objects.chroma_z)  # the target selection's, when it computed them (the same call)
     n_lab = int(px_labels.max()) + 1
-    seen = np.bincount(px_labels.ravel(), weights=(ev.p_d > 0.5).ravel(), minlength=n_lab)
     clear = np.zeros(n_lab, dtype=bool)
-    clear[kept] = seen[kept] < CHROMA_CLEAR_FRACTION * np.bincount(px_labels.ravel(), minlength=n_lab)[kept]
+    clear[clear_labels(px_labels, objects.kept, ev.p_d)] = True
     rx, ry, r_ok = raster.cell(foot_xy)  # not over another object's cells in the table plane either
     under = np.where(r_ok, raster.labels[ry, rx], 0)
     members = np.zeros(n_lab, dtype=bool)

@@ -342,43 +342,43 @@ def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, s
     return kept[kept > 0]
 
 
-def clear_object_at(u: int, v: int, px_labels: np.ndarray, kept: np.ndarray, ev: Evidence, meas: Measurement,
-                    fit: TableFit, missing_px: np.ndarray, rgb_mean: np.ndarray, params: SensingParams) -> int:
-    """The clear object whose body, seen through, holds pixel (u, v); 0 if none.
+def clear_labels(px_labels: np.ndarray, kept: np.ndarray, p_d: np.ndarray) -> np.ndarray:
+    """The clear objects among ``kept``: fewer than ``CHROMA_CLEAR_FRACTION`` of their pixels seen in depth."""
+    n_lab = int(px_labels.max()) + 1
+    seen = np.bincount(px_labels.ravel(), weights=(p_d > 0.5).ravel(), minlength=n_lab)
+    size = np.bincount(px_labels.ravel(), minlength=n_lab)
+    return kept[seen[kept] < CHROMA_CLEAR_FRACTION * size[kept]]
+
+
+def clear_object_at(u: int, v: int, px_labels: np.ndarray, clear: np.ndarray, kept: np.ndarray, ev: Evidence,
+                    meas: Measurement, fit: TableFit, missing_px: np.ndarray, chroma_z: np.ndarray,
+                    params: SensingParams) -> int:
+    """The clear object (one of the labels ``clear``) whose body, seen through, holds pixel (u, v); 0 if none.
 
     A clear object lying on the table returns the table's depth through its body, so a pixel on the body is on no
     object's evidence. The pixel selects an object when the table seen there is tinted as through a clear body
-    (:func:`~.evidence.chromatic_extension` grown from the pixel: a region of changed chromaticity with a core,
-    not running out of the image) and that region touches an object mostly seen without depth, a clear object,
-    whose body :func:`~.clear_body.grow_target` extends over the same kind of pixels. Of several such objects,
-    the nearest to the pixel through the region."""
-    if params.chroma_z_min <= 0:
-        return 0
+    (:func:`~.evidence.chromatic_extension` on the chromaticity z-scores ``chroma_z``, grown from the pixel: a region
+    of changed chromaticity with a core, not running out of the image) and that region touches a clear object,
+    whose body :func:`~.clear_body.grow_target` extends over the same kind of pixels. Of several such objects, the
+    nearest to the pixel through the region."""
     is_object = np.isin(px_labels, kept)
     table_level = np.isfinite(meas.height) & (ev.p_d <= 0.5) & (np.abs(np.nan_to_num(meas.height)) <= fit.h_thr)
     seed = np.zeros(px_labels.shape, dtype=bool)
     seed[v, u] = True
-    chroma_z = chromaticity_distance(rgb_mean, fit.inlier)[0]
     region = _bounded_extension(seed, chromatic_extension(seed, (table_level | missing_px) & ~is_object, chroma_z,
                                                           params.chroma_z_min), params)
     if not region.any():
-        return 0
-    n_lab = int(px_labels.max()) + 1
-    seen = np.bincount(px_labels.ravel(), weights=(ev.p_d > 0.5).ravel(), minlength=n_lab)
-    size = np.bincount(px_labels.ravel(), minlength=n_lab)
-    clear_labels = kept[seen[kept] < CHROMA_CLEAR_FRACTION * size[kept]]
-    if clear_labels.size == 0:
         return 0
     # the nearest clear object through the region: grow from the pixel one ring at a time within the region (on
     # the region's bounding box plus a pixel) until a ring meets a clear object
     vs, us = np.nonzero(region | seed)
     box = (slice(max(vs.min() - 1, 0), vs.max() + 2), slice(max(us.min() - 1, 0), us.max() + 2))
     inside, labels = (region | seed)[box].astype(np.uint8), px_labels[box]
-    clear = np.isin(labels, clear_labels)
+    is_clear = np.isin(labels, clear)
     reach, ring = seed[box].astype(np.uint8), np.ones((3, 3), np.uint8)
     while True:
         grown = cv2.dilate(reach, ring)
-        hit = (grown > 0) & clear
+        hit = (grown > 0) & is_clear
         if hit.any():
             found, n = np.unique(labels[hit], return_counts=True)
             return int(found[np.argmax(n)])
@@ -519,6 +519,7 @@ class Objects(NamedTuple):
     objects_seen: int  # components kept (not specks)
     target_px: np.ndarray  # (H, W) bool, the target's evidence pixels
     kept: np.ndarray  # labels of the objects (components that are not noise, :func:`object_labels`)
+    chroma_z: np.ndarray | None = None  # (H, W) chromaticity z-scores, when the target selection needed them
 
 
 def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarray,
@@ -556,13 +557,15 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
                                           params.min_object_area_m2)
     solid = solid_pixels(height, meas.s_h, on_plane, fit.h_thr, missing_px & evidence, ratio)
     kept = object_labels(px_labels, raster, foot_xy, solid, params)
-    target, objects_seen = 0, int(kept.size)
-    if params.target == 'pixel' and rgb_mean is not None:
+    target, objects_seen, chroma_z = 0, int(kept.size), None
+    if params.target == 'pixel' and rgb_mean is not None and params.chroma_z_min > 0:
         u, v = (int(round(c)) for c in params.target_point)
-        if 0 <= u < w and 0 <= v < h and px_labels[v, u] not in kept:  # not on an object's evidence
-            target = clear_object_at(u, v, px_labels, kept, ev, meas, fit, missing_px, rgb_mean, params)
+        clear = clear_labels(px_labels, kept, ev.p_d)
+        if 0 <= u < w and 0 <= v < h and px_labels[v, u] not in kept and clear.size:  # not on an object's evidence
+            chroma_z = chromaticity_distance(rgb_mean, fit.inlier)[0]
+            target = clear_object_at(u, v, px_labels, clear, kept, ev, meas, fit, missing_px, chroma_z, params)
     if not target:  # on an object's evidence, or the nearest object within target_tolerance_m
         target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics, kept)
     target_px = px_labels == target
     _check_target(target_px, foot_xy[target_px], raster.labels == target, raster.res, params, intrinsics)
-    return Objects(raster, px_labels, target, objects_seen, target_px, kept)
+    return Objects(raster, px_labels, target, objects_seen, target_px, kept, chroma_z)
