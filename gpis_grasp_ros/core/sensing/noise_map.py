@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sdf import signed_distance
@@ -49,6 +50,63 @@ def _extended_regions(mask: np.ndarray) -> np.ndarray:
     return keep[labels]
 
 
+def _window_sdf(padded: np.ndarray, rows: slice, cols: slice, inner: np.ndarray, res: float) -> np.ndarray | None:
+    """:func:`~gpis_grasp_ros.core.sdf.signed_distance` of the one-cell-padded occupancy ``padded`` on the window
+    (``rows``, ``cols``) of it, exact on the window's cells ``inner`` (bool, window-shaped), or None if not proven so.
+
+    Each distance transform sees only the window's cells (none beyond it is a feature), so a cell's distance d_w is
+    its distance to the nearest feature in the window; one outside lies at least e = the cell's axis distance to the
+    first row or column beyond the window. Where d_w <= e no feature outside can be nearer, and d_w is the whole
+    grid's distance - the same squared integer distance, so the same float."""
+    win = padded[rows, cols]
+    if not win.any() or win.all():  # the window holds no feature of one of the two transforms
+        return None
+    dist_outside = distance_transform_edt(~win)
+    dist_inside = distance_transform_edt(win)
+    i = np.arange(win.shape[0])[:, None]
+    j = np.arange(win.shape[1])[None, :]
+    h, w = padded.shape
+    e = np.full(win.shape, np.inf)  # axis distance to the nearest cell beyond the window
+    for beyond, axis_distance in ((rows.start > 0, i + 1.0), (rows.stop < h, win.shape[0] - i),
+                                  (cols.start > 0, j + 1.0), (cols.stop < w, win.shape[1] - j)):
+        if beyond:
+            e = np.minimum(e, axis_distance)
+    dist = np.where(win, dist_inside, dist_outside)
+    if np.any(dist[inner] > e[inner]):
+        return None
+    return (np.where(win, -(dist_inside - 0.5), dist_outside - 0.5) * float(res)).astype(np.float64)
+
+
+def _sdf_change_near(occ_bin: np.ndarray, comp: np.ndarray, near: np.ndarray, res: float) -> np.ndarray:
+    """signed_distance(occ_bin | comp) - signed_distance(occ_bin & ~comp) on the cells ``near`` (0 elsewhere).
+
+    Computed on a window around ``near`` that is widened until :func:`_window_sdf` proves both distance fields
+    exact on those cells (the whole grid at worst): bit for bit the whole grid's difference there."""
+    if not near.any():
+        return np.zeros(occ_bin.shape)
+    padded_a = np.pad(occ_bin | comp, 1, mode='constant', constant_values=False)
+    padded_b = np.pad(occ_bin & ~comp, 1, mode='constant', constant_values=False)
+    vs, us = np.nonzero(near)
+    lo_v, hi_v, lo_u, hi_u = vs.min() + 1, vs.max() + 2, us.min() + 1, us.max() + 2  # padded coordinates
+    h, w = padded_a.shape
+    margin = max(4, (hi_v - lo_v + hi_u - lo_u) // 4)
+    while True:
+        rows = slice(max(lo_v - margin, 0), min(hi_v + margin, h))
+        cols = slice(max(lo_u - margin, 0), min(hi_u + margin, w))
+        inner = np.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=bool)
+        inner[lo_v - rows.start:hi_v - rows.start, lo_u - cols.start:hi_u - cols.start] = \
+            near[lo_v - 1:hi_v - 1, lo_u - 1:hi_u - 1]
+        sdf_a = _window_sdf(padded_a, rows, cols, inner, res)
+        sdf_b = None if sdf_a is None else _window_sdf(padded_b, rows, cols, inner, res)
+        if sdf_b is not None:
+            delta = np.zeros((h, w))
+            delta[rows, cols] = np.where(inner, sdf_a - sdf_b, 0.0)
+            return delta[1:-1, 1:-1]
+        if rows == slice(0, h) and cols == slice(0, w):  # the whole padded grid: always exact
+            raise AssertionError('the whole grid is exact by construction')  # pragma: no cover
+        margin *= 2
+
+
 def _propagation_variance(occ_bin: np.ndarray, uncertain: np.ndarray, train: np.ndarray, geometry: GridGeometry,
                           params: SensingParams) -> np.ndarray:
     """SDF variance (m^2) induced by uncertain cells on every cell's distance (docs/segmentation-stages.md)."""
@@ -63,9 +121,8 @@ def _propagation_variance(occ_bin: np.ndarray, uncertain: np.ndarray, train: np.
         rest = occ_bin & ~comp
         if not rest.any():  # the component is the only object evidence: "free" would mean no object at all
             continue
-        delta = signed_distance(occ_bin | comp, res) - signed_distance(rest, res)
         reach = cv2.distanceTransform((~comp).astype(np.uint8), cv2.DIST_L2, 5) * res
-        delta = np.where(reach <= params.propagation_radius_m, delta, 0.0)
+        delta = _sdf_change_near(occ_bin, comp, reach <= params.propagation_radius_m, res)
         affected = int(np.count_nonzero((np.abs(delta) > 1e-12) & train))
         n_eff = max(1.0, min(float(affected), n_local))
         out += params.alternative_weight * n_eff * delta ** 2

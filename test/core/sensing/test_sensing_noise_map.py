@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
+from gpis_grasp_ros.core.sdf import signed_distance
 from gpis_grasp_ros.core.sensing import SensingParams
-from gpis_grasp_ros.core.sensing.noise_map import _extended_regions, _propagation_variance, noise_map
+from gpis_grasp_ros.core.sensing.noise_map import (
+    _extended_regions,
+    _propagation_variance,
+    _sdf_change_near,
+    noise_map,
+)
 from gpis_grasp_ros.core.sensing.rasterise import Cells
 from support.synthetic_shapes import make_geometry
 
@@ -56,3 +63,28 @@ def test_no_occupied_cell_is_refused_and_nothing_uncertain_propagates_nothing():
     uncertain[3:6, 6] = True
     var = _propagation_variance(occ | uncertain, uncertain, np.ones((9, 9), bool), g, params)
     assert var[4, 8] > 0 and var[4, 0] == 0.0  # beside the uncertain column, not beyond the object
+
+
+def test_the_sdf_change_near_a_component_is_the_whole_grids_bit_for_bit():
+    """200 random grids (blobs, specks, objects at the border, components inside and outside the occupancy, reach
+    discs of 1-12 cells, grids 5-60 cells): the windowed difference equals the whole-grid signed distances'
+    difference exactly on the cells near the component, and is 0 elsewhere."""
+    rng = np.random.default_rng(12)
+    for case in range(200):
+        h, w = rng.integers(5, 61, size=2)
+        occ = rng.random((h, w)) < rng.uniform(0.02, 0.4)
+        occ = cv2.morphologyEx(occ.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
+        comp = np.zeros((h, w), bool)
+        v, u = rng.integers(0, h), rng.integers(0, w)
+        dv, du = rng.integers(1, max(2, h // 3)), rng.integers(1, max(2, w // 3))
+        comp[v:v + dv, u:u + du] = True
+        if rng.random() < 0.5:
+            comp &= occ | (rng.random((h, w)) < 0.5)
+        rest = occ & ~comp
+        if not comp.any() or not rest.any():
+            continue
+        res = 0.004
+        radius = rng.integers(1, 13) * res
+        near = cv2.distanceTransform((~comp).astype(np.uint8), cv2.DIST_L2, 5) * res <= radius
+        full = np.where(near, signed_distance(occ | comp, res) - signed_distance(rest, res), 0.0)
+        np.testing.assert_array_equal(_sdf_change_near(occ, comp, near, res), full, err_msg=f'case {case}')
