@@ -103,7 +103,8 @@ class SensingParams:
     #                               wide, the lower (clear_body_height)
     clear_body_height_m: float = 0.0  # > 0: the clear body's known height (m), instead of those two priors
     chroma_z_min: float = 1.5  # > 0: grow the target over table-level pixels this many robust sigmas off the
-    #                            table's chromaticity (a clear body seen through; chromatic_extension); 0 = off
+    #                            table's chromaticity (a clear body seen through; chromatic_extension), and let
+    #                            a target pixel there select the clear object (clear_object_at); 0 = off
     depth_floor_variance: float = 0.02  # trust of the depth mask in the inverse-variance weights
     color_floor_variance: float = 0.05  # trust of the RGB mask (higher = trusted less)
     morph_kernel_px: int = 3  # opening/closing kernel (ellipse) of the mask clean-up, 0 = off

@@ -125,7 +125,8 @@ PARAMETERS = ParamTable('segmentation_node', [
     Param('color_threshold', float, "RGB mask: minimum distance from the table colour's shadow line (0-255 "
           'units); 0 = adaptive to the table texture seen on the fitted plane', _SP, low=0.0, high=442.0),
     Param('chroma_z_min', float, 'clear targets: grow the target over table-level pixels this many robust sigmas '
-          "off the table's chromaticity, as colour-only evidence (0 = off)", _SP, low=0.0, high=100.0),
+          "off the table's chromaticity, as colour-only evidence, and let a target pixel there select the clear "
+          'object (0 = off)', _SP, low=0.0, high=100.0),
     Param('clear_body_height', float, 'known height of a clear target body, e.g. from a catalogue of the objects, '
           'instead of the priors (0 = the priors; they assume vertical walls and put a round body lying on the '
           'table, a bottle, too low)', _SP, 'clear_body_height_m', unit='m', low=0.0,
