@@ -212,3 +212,34 @@ def test_the_oracle_plans_in_the_truths_world(tmp_path):
     for oracle in (True, False):
         ev = evaluate_grasp(rf, 'gp-gpis-opt', 0, 10, oracle)
         assert np.isfinite(ev.true_clearance_m) and ev.true_clearance_m > 0.0, ev
+
+
+def test_per_capture_checks_count_what_the_targets_ask():
+    """Three captures, 20 trials: variants 2.9 apart pass and 3.1 apart fail the spread; a refused variant closes 0;
+    the first method against GP-M on the mean of the variants; the oracle's floor on every variant. With 10 trials
+    the thresholds scale (1.5 and 8.5 closures)."""
+    from gpis_grasp_ros.tools.evaluate_real import report
+
+    def unit(capture, variant, opt, gp_m, oracle, trials=20, refusal=''):
+        figures = {'closures': opt}, {'closures': gp_m}
+        return {'capture': capture, 'variant': variant, 'trials': trials, 'refusal': refusal,
+                'methods': {} if refusal else {'gp-gpis-opt': figures[0], 'gp-m': figures[1]},
+                'oracle': None if refusal else {'closures': oracle}}
+
+    units = [unit('a', 'whole', 15.0, 14.0, 17.0), unit('a', 'crop', 17.9, 19.0, 18.0),   # 2.9 apart, mean 16.45 < 16.5
+             unit('b', 'whole', 10.0, 9.0, 16.9), unit('b', 'crop', 13.1, 9.0, 20.0),     # 3.1 apart, oracle 16.9
+             unit('c', 'whole', 2.0, 1.0, 18.0), unit('c', 'crop', 0, 0, 0, refusal='x')]  # refused crop: 0
+    c = report.capture_checks(units, ['gp-gpis-opt', 'gp-m'], oracle=True)
+    assert c == {'captures': 3, 'method': 'gp-gpis-opt', 'with_variants': 3, 'variants_within': 2,
+                 'at_least_gp_m': 2, 'oracle_floor': 1}
+    assert report.capture_line(c) == ('per capture (3): gp-gpis-opt within 3/20 across variants on 2 of 3; '
+                                      'gp-gpis-opt >= gp-m on 2 of 3; oracle >= 17/20 on every variant of 1 of 3')
+    tens = [unit('d', 'whole', 5.0, 5.0, 8.5, trials=10), unit('d', 'crop', 6.5, 5.0, 9.0, trials=10)]
+    assert report.capture_checks(tens, ['gp-gpis-opt', 'gp-m'], oracle=True)['variants_within'] == 1
+    assert report.capture_checks(tens, ['gp-gpis-opt', 'gp-m'], oracle=True)['oracle_floor'] == 1
+    tens[1]['methods']['gp-gpis-opt']['closures'] = 6.6
+    tens[0]['oracle']['closures'] = 8.4
+    assert report.capture_checks(tens, ['gp-gpis-opt', 'gp-m'], oracle=True)['variants_within'] == 0
+    assert report.capture_checks(tens, ['gp-gpis-opt', 'gp-m'], oracle=True)['oracle_floor'] == 0
+    only_m = report.capture_checks(units, ['gp-m'], oracle=False)
+    assert 'at_least_gp_m' not in only_m and 'oracle_floor' not in only_m

@@ -126,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     summ = report.summary(agg, methods, args.oracle)
     text = report.table(agg, methods, args.oracle)
     line = report.summary_line(summ, args.trials)
+    summ['per_capture'] = report.capture_checks(agg, methods, args.oracle)
+    line += '\n' + report.capture_line(summ['per_capture'])
     print(text)
     print()
     print(line)

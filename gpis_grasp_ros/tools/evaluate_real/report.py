@@ -130,6 +130,54 @@ def summary_line(s: dict[str, Any], trials: int) -> str:
     return 'mean over ' + '; '.join(parts)
 
 
+#: Per-capture checks of the real-objects targets, as fractions of the executions: whole frame and crop of a capture
+#: within 3 of 20 closures of each other, and the oracle closing at least 17 of 20 on every variant
+VARIANT_SPREAD, ORACLE_FLOOR = 3 / 20, 17 / 20
+
+
+def capture_checks(units: Sequence[dict[str, Any]], methods: Sequence[str], oracle: bool) -> dict[str, Any]:
+    """Per capture (its variants together; a refused variant closes 0): whether the first method's closures of the
+    variants lie within ``VARIANT_SPREAD`` of the executions of each other (captures with two or more variants),
+    whether its mean over the variants reaches GP-M's (when both were run), and whether the oracle closes at least
+    ``ORACLE_FLOOR`` of them on every variant (with ``--oracle``). Counts of the captures that pass each."""
+    by_capture: dict[str, list[dict[str, Any]]] = {}
+    for u in units:
+        by_capture.setdefault(u['capture'], []).append(u)
+    first = methods[0] if methods else None
+
+    def closures(u: dict[str, Any], m: str | None) -> float:
+        f = u['oracle'] if m is None else u['methods'].get(m) if u['methods'] else None
+        return 0.0 if f is None or not math.isfinite(f['closures']) else float(f['closures'])
+
+    out: dict[str, Any] = {'captures': len(by_capture), 'method': first}
+    if first is not None:
+        multi = [v for v in by_capture.values() if len(v) >= 2]
+        spread = [max(closures(u, first) for u in v) - min(closures(u, first) for u in v) for v in multi]
+        out['with_variants'] = len(multi)
+        out['variants_within'] = sum(d <= VARIANT_SPREAD * v[0]['trials'] + 1e-9
+                                     for d, v in zip(spread, multi, strict=True))
+        if first != 'gp-m' and 'gp-m' in methods:
+            out['at_least_gp_m'] = sum(_mean([closures(u, first) for u in v]) >= _mean([closures(u, 'gp-m') for u in v])
+                                       for v in by_capture.values())
+    if oracle:
+        out['oracle_floor'] = sum(all(closures(u, None) >= ORACLE_FLOOR * u['trials'] - 1e-9 for u in v)
+                                  for v in by_capture.values())
+    return out
+
+
+def capture_line(c: dict[str, Any]) -> str:
+    """The per-capture counts of :func:`capture_checks` as one line."""
+    parts = []
+    if 'variants_within' in c:
+        parts.append(f"{c['method']} within {VARIANT_SPREAD * 20:.0f}/20 across variants on {c['variants_within']} "
+                     f"of {c['with_variants']}")
+    if 'at_least_gp_m' in c:
+        parts.append(f"{c['method']} >= gp-m on {c['at_least_gp_m']} of {c['captures']}")
+    if 'oracle_floor' in c:
+        parts.append(f"oracle >= {ORACLE_FLOOR * 20:.0f}/20 on every variant of {c['oracle_floor']} of {c['captures']}")
+    return f"per capture ({c['captures']}): " + ('; '.join(parts) if parts else 'nothing to compare')
+
+
 def reliability(rows: Sequence[dict[str, Any]], bins: int = 10) -> dict[str, list[dict[str, Any]]]:
     """Per series (perceived grasps of every method; oracle grasps): P_F bins with count, mean P_F, closure rate."""
     out: dict[str, list[dict[str, Any]]] = {}
