@@ -560,10 +560,11 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
     target, objects_seen, chroma_z = 0, int(kept.size), None
     if params.target == 'pixel' and rgb_mean is not None and params.chroma_z_min > 0:
         u, v = (int(round(c)) for c in params.target_point)
-        clear = clear_labels(px_labels, kept, ev.p_d)
-        if 0 <= u < w and 0 <= v < h and px_labels[v, u] not in kept and clear.size:  # not on an object's evidence
-            chroma_z = chromaticity_distance(rgb_mean, fit.inlier)[0]
-            target = clear_object_at(u, v, px_labels, clear, kept, ev, meas, fit, missing_px, chroma_z, params)
+        if 0 <= u < w and 0 <= v < h and px_labels[v, u] not in kept:  # not on an object's evidence
+            clear = clear_labels(px_labels, kept, ev.p_d)
+            if clear.size:
+                chroma_z = chromaticity_distance(rgb_mean, fit.inlier)[0]
+                target = clear_object_at(u, v, px_labels, clear, kept, ev, meas, fit, missing_px, chroma_z, params)
     if not target:  # on an object's evidence, or the nearest object within target_tolerance_m
         target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics, kept)
     target_px = px_labels == target
