@@ -54,10 +54,10 @@ class GpisParams:
     jitter: float = 1e-10  # added to every noise variance (diagonal of K + N), m^2 for values, 1 for gradients
     gradient_observations: bool = True  # also train on the SDF gradient (section III, derivative observations)
     gradient_noise_variance: float = 0.01  # g0: discretisation noise of one central-difference gradient component
-    max_exact_points: int = 2500  # above this many training cells use the reduced-rank path
+    max_exact_points: int = 2500  # above this many training cells the basis is also capped at max_rank
     search_band_cells: float | None = 3.0  # hyperparameter search on training cells with |SDF| <= this many cells
     max_opt_points: int = 450  # observations (values + gradient components) in the hyperparameter search subset
-    rank_tolerance: float = 1e-10  # relative eigenvalue cut-off of the Kronecker basis
+    rank_tolerance: float = 1e-10  # modes of prior variance below this x the largest's are dropped (std < 1e-5 x)
     max_rank: int = 2000  # cap on the basis size r (memory H*W*r*8 bytes)
     blas_threads: int | None = 1  # BLAS threads during the fit (None = library default), see blas_threads()
     length_scale_min_cells: float = 1.0  # lower bound on l in grid cells (docs/gpis-model.md, Hyperparameters)
@@ -90,9 +90,6 @@ class GpisParams:
             raise ValueError(f'signal_std_bounds must satisfy 0 < low < high, got {self.signal_std_bounds}')
 
 
-EXACT_RANK_TOLERANCE = 1e-15  # product eigenvalues below this x the largest are at the rounding level
-
-
 def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jitter: float, max_exact_points: int,
                rank_tolerance: float, max_rank: int, hyperparameters_optimized: bool,
                fit: HyperparameterFit | None = None) -> GpisPosterior:
@@ -113,8 +110,7 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
     exact = obs.n_values <= max_exact_points
     approximation = 'exact' if exact else 'reduced_rank'
     joint = obs.has_gradients
-    basis = _kronecker_basis(geometry, ell, EXACT_RANK_TOLERANCE if exact else rank_tolerance,
-                             None if exact else max_rank, joint)
+    basis = _kronecker_basis(geometry, ell, rank_tolerance, None if exact else max_rank, joint)
     sqrt_c = math.sqrt(c)
     kinds = [k for k in (VALUE, GRAD_X, GRAD_Y) if np.any(obs.kind == k)]
     sel = {k: obs.kind == k for k in kinds}
