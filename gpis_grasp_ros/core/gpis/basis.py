@@ -94,6 +94,7 @@ class _Basis:
     a: np.ndarray  # (r,) row-mode index of each selected product mode
     b: np.ndarray  # (r,) column-mode index
     truncation: float  # dropped share of the prior variance
+    capped: bool = False  # modes above the tolerance were dropped to keep at most max_rank
 
     @property
     def rank(self) -> int:
@@ -110,12 +111,13 @@ def _kronecker_basis(geometry: GridGeometry, ell: float, tol: float, max_rank: i
     mx, my = _axis_modes(xs, ell, joint), _axis_modes(ys, ell, joint)
     flat = np.outer(my.lam, mx.lam).ravel()
     keep = np.flatnonzero(flat >= tol * flat.max())
-    keep = keep[np.argsort(-flat[keep], kind='stable')][:max_rank]
     keep = keep[flat[keep] > 0]
+    capped = max_rank is not None and keep.size > max_rank
+    keep = keep[np.argsort(-flat[keep], kind='stable')][:max_rank]
     a, b = np.divmod(keep, mx.lam.size)
     total = flat.sum()
     truncation = float(max(total - flat[keep].sum(), 0.0) / total)
-    return _Basis(my, mx, a, b, truncation)
+    return _Basis(my, mx, a, b, truncation, capped)
 
 
 def _axis_index(coords: np.ndarray, axis: np.ndarray, res: float) -> tuple[np.ndarray, np.ndarray]:

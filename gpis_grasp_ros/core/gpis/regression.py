@@ -54,11 +54,11 @@ class GpisParams:
     jitter: float = 1e-10  # added to every noise variance (diagonal of K + N), m^2 for values, 1 for gradients
     gradient_observations: bool = True  # also train on the SDF gradient (section III, derivative observations)
     gradient_noise_variance: float = 0.01  # g0: discretisation noise of one central-difference gradient component
-    max_exact_points: int = 2500  # above this many training cells the basis is also capped at max_rank
+    max_exact_points: int = 2500  # up to this many training cells mean and variance are exact
     search_band_cells: float | None = 3.0  # hyperparameter search on training cells with |SDF| <= this many cells
     max_opt_points: int = 450  # observations (values + gradient components) in the hyperparameter search subset
     rank_tolerance: float = 1e-10  # modes of prior variance below this x the largest's are dropped (std < 1e-5 x)
-    max_rank: int = 2000  # cap on the basis size r (memory H*W*r*8 bytes)
+    max_rank: int = 2000  # cap on the basis size r on every path (cost r^3 / 3, memory H*W*r*8 bytes)
     blas_threads: int | None = 1  # BLAS threads during the fit (None = library default), see blas_threads()
     length_scale_min_cells: float = 1.0  # lower bound on l in grid cells (docs/gpis-model.md, Hyperparameters)
     length_scale_max_extent: float = 1.0 / 6.0  # upper bound on l as a multiple of the grid extent E
@@ -107,10 +107,12 @@ def _condition(geometry: GridGeometry, kp: KernelParams, obs: _Observations, jit
     cols, col_on = _axis_index(obs.xy[:, 0], xs, geometry.resolution)
     rows, row_on = _axis_index(obs.xy[:, 1], ys, geometry.resolution)
     on_grid = bool(np.all(col_on) and np.all(row_on))
-    exact = obs.n_values <= max_exact_points
-    approximation = 'exact' if exact else 'reduced_rank'
+    exact = obs.n_values <= max_exact_points  # off the grid: mean and variance by a function-space Cholesky
     joint = obs.has_gradients
-    basis = _kronecker_basis(geometry, ell, rank_tolerance, None if exact else max_rank, joint)
+    # at most max_rank modes on either path: the conditioning costs r^3 / 3 (a thin object's 45 x 45 grid
+    # would keep 4000+ modes above the tolerance and take seconds)
+    basis = _kronecker_basis(geometry, ell, rank_tolerance, max_rank, joint)
+    approximation = 'reduced_rank' if not exact or (basis.capped and on_grid) else 'exact'
     sqrt_c = math.sqrt(c)
     kinds = [k for k in (VALUE, GRAD_X, GRAD_Y) if np.any(obs.kind == k)]
     sel = {k: obs.kind == k for k in kinds}
