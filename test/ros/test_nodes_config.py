@@ -205,3 +205,19 @@ def test_perception_settings_are_segmentation_parameters(context):
         assert node.params.target_point == (3.0, 4.0)
     finally:
         node.destroy_node()
+
+
+def test_perturbation_count_is_a_planner_parameter(context):
+    """K_p of GP-GPIS-OPT's smoothed P_F is set on planner_node at run time and range-checked."""
+    from gpis_grasp_ros.core import planners
+    from gpis_grasp_ros.ros.nodes.planner_node import PlannerNode
+
+    node = PlannerNode(context=context)
+    try:
+        assert node.config.planner.n_perturbations == planners.PlannerParams().n_perturbations == 32
+        assert node.set_parameters([Parameter('num_perturbations', value=16)])[0].successful
+        assert node.config.planner.n_perturbations == 16
+        assert not node.set_parameters([Parameter('num_perturbations', value=0)])[0].successful
+        assert node.config.planner.n_perturbations == 16
+    finally:
+        node.destroy_node()

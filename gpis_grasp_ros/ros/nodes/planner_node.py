@@ -129,6 +129,9 @@ PARAMETERS = ParamTable('planner_node', [
           'n_grasp_samples', low=1, high=MAX_GRASP_SAMPLES),
     Param('num_shape_samples', int, 'S: GPIS shape samples of the Monte-Carlo P_F estimate (paper: 1000)', _PP,
           'n_shape_samples', low=10, high=100000),
+    Param('num_perturbations', int, 'K_p: jaw perturbations averaged in the smoothed P_F of GP-GPIS-OPT / GP-D / GP-U '
+          '(16 plans in about half the time, P_F 0.01 lower: docs/speed.md)', _PP, 'n_perturbations', low=1,
+          high=1000),
     Param('uncertainty_penalty', float, 'lambda of eq. 4, per m^2 of SDF variance at the contacts (the same on any '
           'grid; the paper\'s 2 per cell^2 is 5e4 at 6.3 mm cells); requests outside this range are rejected', _PP,
           unit='1/m^2', low=LAMBDA_RANGE[0],
