@@ -27,16 +27,17 @@ units: q0 = 1e-3 m, q2 = 0.
 
 **custom**: all five coefficients given by the user.
 
-**Shadow of the second viewpoint** (``occluder_x_m``). A structured-light sensor measures a point only if its
-IR projector lights it too, an active-stereo sensor only if its second imager sees it: table points hidden
-from that second viewpoint by an object get no return - the projector (stereo) shadow beside the object, on
-the side away from the viewpoint. ``occluder_x_m`` is its position along +x of the depth image's camera frame
-(m; 0 = no such shadow modelled): **carmine** 0.075 (the projector of the PrimeSense / Kinect v1 design,
-7.5 cm from the IR camera), **realsense_d400** 0.050 (the D435's stereo baseline, the right imager); the
-simulator puts its projector there too (``sim.scene.CameraModel.projector_baseline``). Checked on the real
-D435 capture of ``bags/real`` with opaque objects: the table points the model hides from x = +0.050 m are
-no-return pixels in 99 % of 2280 cases beyond what the camera itself cannot see (56 % of 3523 with the
-imager on the other side; ``test/core/test_shadow.py``), see ``sensing.occlusion_shadow_pixels``.
+**Shadow of the second viewpoint** (``occluder_x_m``). A structured-light sensor measures a point only if its IR
+projector lights it too, an active-stereo sensor only if its second imager sees it: table points hidden from that
+second viewpoint by an object get no return - the projector (stereo) shadow beside the object, on the side away from
+the viewpoint. ``occluder_x_m`` is its position along +x of the depth image's camera frame (m; 0 = no such shadow
+modelled; ``occluder_y_m`` along +y, for a camera rolled about its optical axis: upside down, x = -0.075 for a
+Carmine; rolled a quarter turn clockwise in the image, y = +0.075): **carmine** 0.075 (the projector of the
+PrimeSense / Kinect v1 design, 7.5 cm from the IR camera), **realsense_d400** 0.050 (the D435's stereo baseline, the
+right imager); the simulator puts its projector there too (``sim.scene.CameraModel.projector_baseline``). Checked on
+the real D435 capture of ``bags/real`` with opaque objects: the table points the model hides from x = +0.050 m are
+no-return pixels in 99 % of 2280 cases beyond what the camera itself cannot see (56 % of 3523 with the imager on the
+other side; ``test/core/test_shadow.py``), see ``sensing.occlusion_shadow_pixels``.
 
 Frames are averaged to reduce the noise (section III-B: 10 frames). The reduction is only as
 large as the frames are independent: :func:`effective_frame_count` *measures* it from the
@@ -82,15 +83,17 @@ class SensorModel:
     quantisation_per_m: float = QUANTISATION_PER_M  # q2
     quantisation_constant_m: float = 0.0  # q0
     occluder_x_m: float = CARMINE_PROJECTOR_X_M  # x (m) of the projector / second imager; 0 = no shadow model
+    occluder_y_m: float = 0.0  # y (m) of it: a camera rolled about its optical axis (a portrait mount)
 
     def __post_init__(self) -> None:
         values = (self.sigma_constant_m, self.sigma_quadratic_per_m, self.sigma_reference_depth_m,
                   self.sigma_stereo_per_m, self.quantisation_per_m, self.quantisation_constant_m)
         if not all(math.isfinite(v) and v >= 0 for v in values):
             raise ValueError(f'sensor model coefficients must be finite and >= 0, got {values}')
-        if not (math.isfinite(self.occluder_x_m) and abs(self.occluder_x_m) <= 1.0):
-            raise ValueError(f'sensor model: occluder_x_m must be a finite offset of at most 1 m, '
-                             f'got {self.occluder_x_m}')
+        for name in ('occluder_x_m', 'occluder_y_m'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and abs(value) <= 1.0):
+                raise ValueError(f'sensor model: {name} must be a finite offset of at most 1 m, got {value}')
         if self.sigma_constant_m + self.sigma_quadratic_per_m + self.sigma_stereo_per_m <= 0:
             raise ValueError('sensor model: sigma_z would be 0 at every depth (give c0, c1 or c2 > 0)')
 

@@ -221,3 +221,18 @@ def test_perturbation_count_is_a_planner_parameter(context):
         assert node.config.planner.n_perturbations == 16
     finally:
         node.destroy_node()
+
+
+def test_a_custom_sensor_rolled_a_quarter_turn(context):
+    """A custom sensor model takes its second viewpoint anywhere in the image plane (a rolled camera)."""
+    from gpis_grasp_ros.ros.nodes.segmentation_node import SegmentationNode
+
+    node = SegmentationNode(context=context, parameter_overrides=[
+        Parameter('sensor_model', value='custom'), Parameter('sensor_sigma_constant', value=0.001),
+        Parameter('sensor_occluder_x', value=0.0), Parameter('sensor_occluder_y', value=0.075)])
+    try:
+        sensor = node.params.sensor
+        assert sensor.name == 'custom' and (sensor.occluder_x_m, sensor.occluder_y_m) == (0.0, 0.075)
+        assert sensor.sigma_constant_m == 0.001
+    finally:
+        node.destroy_node()

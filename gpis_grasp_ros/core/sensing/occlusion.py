@@ -180,9 +180,9 @@ def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.nd
     """No-return pixels that look at table the sensor's second viewpoint cannot see: its shadow.
 
     A structured-light sensor needs its projector to light a point, an active-stereo sensor its second imager
-    to see it (:class:`~gpis_grasp_ros.core.noise_model.SensorModel`, ``occluder_x_m``: that viewpoint at
-    (x, 0, 0) in the camera frame). Objects on a table are height fields, so under every point seen above the
-    table the column down to its foot is solid. A candidate pixel (``candidates``: no return) is in the shadow
+    to see it (:class:`~gpis_grasp_ros.core.noise_model.SensorModel`, ``occluder_x_m``, ``occluder_y_m``: that
+    viewpoint at (x, y, 0) in the camera frame). Objects on a table are height fields, so under every point seen
+    above the table the column down to its foot is solid. A candidate pixel (``candidates``: no return) is in the shadow
     when the table point on its ray
 
     * is hidden from the second viewpoint by those columns, by more than ``3 sqrt(2) sigma_z + slack_m``
@@ -200,13 +200,12 @@ def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.nd
     onto one or two pixels, a shadow band next to an object passes the prism test on its own pixels, and the
     object was grown by the band (a 3 cm box under a top-down Carmine: 18 % too much area).
 
-    Returns (H, W) bool. Nothing when the sensor has no second viewpoint (``occluder_x_m`` = 0) or nothing is
-    seen above the table."""
+    Returns (H, W) bool. Nothing when the sensor has no second viewpoint (``occluder_x_m`` = ``occluder_y_m`` = 0)
+    or nothing is seen above the table."""
     out = np.zeros(candidates.shape, dtype=bool)
-    off = float(sensor.occluder_x_m)
-    if off == 0.0 or not candidates.any() or not solid.any():
+    origin = np.array([float(sensor.occluder_x_m), float(sensor.occluder_y_m), 0.0])
+    if not origin.any() or not candidates.any() or not solid.any():
         return out
-    origin = np.array([off, 0.0, 0.0])
     hts = np.nan_to_num(height[solid])
     hit_pts, hit = table.ray_intersection(intrinsics.rays())
     cand = candidates & hit

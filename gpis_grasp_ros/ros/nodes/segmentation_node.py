@@ -144,6 +144,8 @@ PARAMETERS = ParamTable('segmentation_node', [
     _custom_sensor('sensor_occluder_x', 'x (camera frame) of its projector or second imager, whose shadow has no '
                    'return (0 = none; carmine 0.075, realsense_d400 0.050)', 'occluder_x_m', low=-1.0, unit='m',
                    default=0.0),
+    _custom_sensor('sensor_occluder_y', 'y (camera frame) of it: a camera rolled about its optical axis (0 = none)',
+                   'occluder_y_m', low=-1.0, unit='m', default=0.0),
     Param('table_plane', list, 'table plane a x + b y + c z + d = 0 in the camera frame; all 0 = fit it (robust '
           'MSAC over the whole cloud)', _SP, unit='m', size=4, rule=ZEROS_ARE_NONE),
     Param('roi_px', list, 'region of interest (u_min, v_min, u_max, v_max); all 0 = whole image', _SP, unit='px',
