@@ -339,7 +339,8 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
                  lower: np.ndarray | None = None, upper: np.ndarray | None = None,
                  record_history: bool = False,
                  monitor: Callable[[ScpProgress], None] | None = None,
-                 poll: Callable[[], None] | None = None) -> ScpResult:
+                 poll: Callable[[], None] | None = None,
+                 penalty0: np.ndarray | None = None) -> ScpResult:
     """Run SCP from each row of ``x0`` (R, n); see the module docstring.
 
     ``fun`` maps a batch of points (B, n) to objective values (B,) and constraint values (B, m)
@@ -350,10 +351,18 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
     ``settings.eval_chunk`` objective evaluations and every ``settings.poll_interval`` s while the
     batched QP is solved; it may raise to abort. The QP then runs in a worker thread (OSQP releases
     the GIL) whose result is discarded on abort; the iterates are the same with or without ``poll``.
+    ``penalty0`` (R,) the initial penalty μ of each restart (default ``penalty_init``): a run resumed from
+    where an earlier one ended starts with the penalty that run reached.
     """
     st = ScpSettings() if settings is None else settings
     x = np.array(x0, dtype=np.float64, ndmin=2)
     r, n = x.shape
+    if penalty0 is None:
+        mu = np.full(r, st.penalty_init)
+    else:
+        mu = np.array(np.broadcast_to(np.asarray(penalty0, dtype=np.float64), (r,)))
+        if not (np.isfinite(mu).all() and (mu > 0).all() and (mu <= st.penalty_max * (1 + 1e-12)).all()):
+            raise ValueError(f'penalty0 must be positive and at most penalty_max={st.penalty_max:g}, got {mu}')
     lower = np.broadcast_to(-np.inf if lower is None else np.asarray(lower, float), (r, n))
     upper = np.broadcast_to(np.inf if upper is None else np.asarray(upper, float), (r, n))
     x = np.clip(x, lower, upper)
@@ -409,7 +418,6 @@ def scp_minimize(fun: BatchFunction, x0: np.ndarray, settings: ScpSettings | Non
     m = g.shape[1]
     all_rows = np.arange(r)
     grad, jac = derivatives(all_rows, f, g)
-    mu = np.full(r, st.penalty_init)
     s = np.full(r, st.trust_radius_init)
     active = np.ones(r, dtype=bool)
     iterations = np.zeros(r, dtype=np.int64)

@@ -24,20 +24,29 @@ def test_whole_frame_scene_is_not_cropped() -> None:
 
 def test_warm_chain_keeps_the_previous_fit_and_plans_the_same_grasp() -> None:
     """The warm chain of an unchanged scene keeps the warm-up chain's C and l after one likelihood evaluation
-    (so the same posterior and, at the same seed, the same grasp); the drifted start is re-searched back."""
+    (so the same posterior), starts most restarts at the warm-up plan's optima and, each of them already at
+    an optimum, ends at the same grasp; the drifted start is re-searched back."""
     case = bench_e2e.bag_cases()[0]
     scene = bench_e2e.load_bag(bench_e2e.BAG_DIR / case.path, frames=case.frames)
     planner = bench_e2e.PlannerParams()
     cold = bench_e2e.time_chain(scene, case.sensing, planner, 0)
-    warm = bench_e2e.time_chain(scene, case.sensing, planner, 0, cold['fit'])
+    warm = bench_e2e.time_chain(scene, case.sensing, planner, 0, cold)
     assert not cold['fit'].warm_started and cold['ev'] > 1
     assert warm['fit'].warm_started and not warm['fit'].searched and warm['ev'] == 1
     assert (warm['fit'].signal_variance, warm['fit'].length_scale) == (cold['fit'].signal_variance,
                                                                        cold['fit'].length_scale)
-    assert warm['P_F'] == cold['P_F']
+    assert sum(r.warm for r in warm['grasp'].restarts) == 15 and not any(r.warm for r in cold['grasp'].restarts)
+    assert abs(warm['grasp'].objective - cold['grasp'].objective) < 1e-9
+    assert abs(warm['P_F'] - cold['P_F']) < 1e-9
     times, fit = bench_e2e.time_drifted(cold['grids'], cold['fit'], 1)
     assert len(times) == 1 and fit.warm_started and fit.searched and 1 < fit.n_evaluations <= 10  # cold: 6
     assert abs(fit.log_likelihood - cold['fit'].log_likelihood) < 1e-3
+
+
+def test_bursts_are_the_two_halves() -> None:
+    assert bench_e2e.bursts(10) == (slice(0, 5), slice(5, 10))
+    assert bench_e2e.bursts(7) == (slice(0, 3), slice(3, 6))
+    assert bench_e2e.bursts(1) == (slice(0, 1), slice(0, 1))
 
 
 def test_pf_is_a_bench_suite() -> None:

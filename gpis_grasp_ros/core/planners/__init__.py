@@ -7,6 +7,8 @@
 * ``'gp-gpis-opt-reranked'`` (beyond the paper): GP-GPIS-OPT's local optima re-scored by Monte-Carlo P_F.
 * ``'gp-d-single'`` / ``'gp-u-single'`` (beyond the paper): GP-D / GP-U from one initial grasp.
 
+Replanning: the SCP planners take a previous plan's optima as starts (:class:`WarmStart`).
+
 The design decisions where the paper is silent are in ``docs/planning.md``.
 """
 
@@ -26,10 +28,12 @@ from gpis_grasp_ros.core.planners.params import PlannerParams
 from gpis_grasp_ros.core.planners.registry import METHODS, plan
 from gpis_grasp_ros.core.planners.result import GraspResult, PlanControl, PlanProgress, RestartInfo
 from gpis_grasp_ros.core.planners.sampling import mean_surface_points, sample_heuristic_grasps, sample_valid_grasps
+from gpis_grasp_ros.core.planners.warm_start import WARM_METHODS, WarmStart
 
 __all__ = [
-    'METHODS', 'SCP_EVAL_CHUNK', 'GraspResult', 'MeanGraspObjective', 'PlanControl', 'PlanProgress', 'PlannerParams',
-    'PlanningContext', 'RestartInfo', 'evaluation_samples', 'mean_surface_points', 'plan', 'plan_gp_d',
-    'plan_gp_d_single', 'plan_gp_gpis_opt', 'plan_gp_gpis_opt_reranked', 'plan_gp_m', 'plan_gp_p', 'plan_gp_u',
-    'plan_gp_u_single', 'sample_heuristic_grasps', 'sample_valid_grasps', 'select_by_monte_carlo',
+    'METHODS', 'SCP_EVAL_CHUNK', 'WARM_METHODS', 'WarmStart', 'GraspResult', 'MeanGraspObjective', 'PlanControl',
+    'PlanProgress', 'PlannerParams', 'PlanningContext', 'RestartInfo', 'evaluation_samples', 'mean_surface_points',
+    'plan', 'plan_gp_d', 'plan_gp_d_single', 'plan_gp_gpis_opt', 'plan_gp_gpis_opt_reranked', 'plan_gp_m',
+    'plan_gp_p', 'plan_gp_u', 'plan_gp_u_single', 'sample_heuristic_grasps', 'sample_valid_grasps',
+    'select_by_monte_carlo',
 ]

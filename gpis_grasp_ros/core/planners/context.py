@@ -4,6 +4,7 @@ evaluation of the chosen grasp (:func:`finish`) and the entry-point wrapper that
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,16 +23,21 @@ from gpis_grasp_ros.core.quality import (
 )
 from gpis_grasp_ros.core.sdf_bank import SdfBank
 
+if TYPE_CHECKING:
+    from gpis_grasp_ros.core.planners.warm_start import WarmStart
+
 
 class PlanningContext:
     """Everything the planners precompute from a posterior (mean-shape bank, COM, ρ, σ_g, surface).
 
     ``mean_bank`` is the world the jaws close in (the mean shape and the posterior's obstacles);
-    ``shape_bank`` the mean shape alone, on which candidates are placed."""
+    ``shape_bank`` the mean shape alone, on which candidates are placed; ``warm_start`` a previous plan's
+    optima for the SCP planners' starts (None: fresh heuristic grasps only)."""
 
-    def __init__(self, posterior: GpisPosterior, params: PlannerParams) -> None:
+    def __init__(self, posterior: GpisPosterior, params: PlannerParams, warm_start: WarmStart | None = None) -> None:
         self.posterior = posterior
         self.params = params
+        self.warm_start = warm_start
         self.geometry: GridGeometry = posterior.geometry
         self.res = self.geometry.resolution
         self.gripper = params.gripper
@@ -98,10 +104,11 @@ def evaluation_samples(ctx: PlanningContext, rng: np.random.Generator) -> ShapeS
     return draw_shape_samples(ctx.posterior, ctx.params.n_shape_samples, rng, rho=ctx.rho)
 
 
-def _prepare(posterior: GpisPosterior, params: PlannerParams | None, seed: int | None):
+def _prepare(posterior: GpisPosterior, params: PlannerParams | None, seed: int | None,
+             warm_start: WarmStart | None = None):
     params = PlannerParams() if params is None else params
     seed = params.seed if seed is None else seed
-    return PlanningContext(posterior, params), streams(seed), seed
+    return PlanningContext(posterior, params, warm_start), streams(seed), seed
 
 
 def stoppable(method: str):
@@ -109,12 +116,12 @@ def stoppable(method: str):
 
     def wrap(body):
         def planner(posterior: GpisPosterior, params: PlannerParams | None = None, seed: int | None = None,
-                    control: PlanControl | None = None) -> GraspResult:
+                    control: PlanControl | None = None, warm_start: WarmStart | None = None) -> GraspResult:
             t0 = time.perf_counter()
             tracker = Tracker(control)
             try:
                 tracker.check()
-                ctx, rngs, seed_used = _prepare(posterior, params, seed)
+                ctx, rngs, seed_used = _prepare(posterior, params, seed, warm_start)
                 return body(ctx, rngs, seed_used, t0, tracker)
             except Stopped as stop:
                 seed_used = (PlannerParams() if params is None else params).seed if seed is None else seed

@@ -10,7 +10,7 @@ from gpis_grasp_ros.core.planners.context import PlanningContext, finish, stoppa
 from gpis_grasp_ros.core.planners.objective import SCP_UNIT_M, MeanGraspObjective
 from gpis_grasp_ros.core.planners.params import PlannerParams
 from gpis_grasp_ros.core.planners.result import GraspResult, RestartInfo, Tracker, empty_result
-from gpis_grasp_ros.core.planners.sampling import sample_valid_grasps
+from gpis_grasp_ros.core.planners.warm_start import initial_grasps
 from gpis_grasp_ros.core.quality import draw_shape_samples, probability_force_closure
 from gpis_grasp_ros.core.scp import ScpProgress, ScpResult, ScpSettings, scp_minimize
 
@@ -40,7 +40,8 @@ def optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, a
     params = ctx.params
     tracker = Tracker(None) if tracker is None else tracker
     tracker.check()
-    j1, j2 = sample_valid_grasps(ctx, n_starts, rngs['candidates'], checkpoint=tracker.check)
+    # the warm starts (if any) come first, with the penalty their run ended with
+    j1, j2, mu0, n_warm = initial_grasps(ctx, n_starts, rngs['candidates'], ctx.warm_start, checkpoint=tracker.check)
     if j1.shape[0] == 0:
         return empty_result(method, 'no valid initial grasp found on the mean shape', t_start, seed)
     tracker.total = j1.shape[0]
@@ -53,8 +54,9 @@ def optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, a
     lower, upper = np.tile(lo, 2) / SCP_UNIT_M, np.tile(hi, 2) / SCP_UNIT_M
     monitor = _ScpMonitor(objective, tracker, x0.shape[0], params.constraint_tol)
     poll = tracker.check if tracker.control is not None else None
-    res: ScpResult = scp_minimize(objective, x0, _scp_settings(params), lower=lower, upper=upper, monitor=monitor,
-                                  poll=poll)
+    settings = _scp_settings(params)
+    res: ScpResult = scp_minimize(objective, x0, settings, lower=lower, upper=upper, monitor=monitor, poll=poll,
+                                  penalty0=np.where(np.isfinite(mu0), mu0, settings.penalty_init))
     feasible0 = _chunked_details(objective, x0, tracker)['constraints'].max(axis=1) <= params.constraint_tol
     # The opening constraint holds to constraint_tol; make it exact (a grasp wider than w_g is not
     # in the candidate set and would fail every Monte-Carlo trial): shrink about the centre.
@@ -74,7 +76,7 @@ def optimise(ctx: PlanningContext, method: str, n_starts: int, penalty: float, a
                             converged=bool(res.converged[i]), reason=res.reason[i], iterations=int(res.iterations[i]),
                             evaluations=int(res.evaluations[i]), objective_history=-res.objective_history[i],
                             qp_failures=int(res.qp_failures[i]), qp_status=res.qp_status[i],
-                            initial_feasible=bool(feasible0[i]))
+                            initial_feasible=bool(feasible0[i]), warm=i < n_warm, penalty=float(res.penalty[i]))
                 for i in range(res.x.shape[0])]
     # Algorithm 1: keep the best objective; feasible local optima take precedence.
     rank_value = np.where(feasible, value, value - 1e6)

@@ -20,7 +20,8 @@ class RestartInfo:
     SCP iteration (before the final opening fix, so its last entry can differ from
     ``objective`` by the shrink); ``qp_failures``/``qp_status`` failed QP solves and the last
     failure status ('' if none); ``initial_feasible`` whether the initial grasp met every
-    constraint; ``feasible`` whether the returned grasp does.
+    constraint; ``feasible`` whether the returned grasp does; ``warm`` whether it started at a previous
+    plan's optimum.
     """
 
     initial_jaw1: np.ndarray
@@ -39,6 +40,8 @@ class RestartInfo:
     initial_feasible: bool = False  # the initial grasp already met every constraint (to constraint_tol)
     qp_failures: int = 0  # QP subproblems the QP solver failed to solve during this run
     qp_status: str = ''  # last failed QP status ('' when every QP solved)
+    warm: bool = False  # started from a previous plan's optimum (warm_start.WarmStart), not a fresh heuristic grasp
+    penalty: float = float('nan')  # the ℓ1 penalty μ the run ended with (scp.ScpResult.penalty)
 
 
 @dataclass

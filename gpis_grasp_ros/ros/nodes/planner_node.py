@@ -24,6 +24,11 @@ K, λ, seed) on the same model and parameters joins the plan in progress or gets
 planning twice. (Planning is deterministic given the seed, so another caller sending the same seeded
 request gets the grasp it would have got; rclpy does not tell a service who called.)
 
+**Replanning.** With ``warm_start`` (default on) GP-GPIS-OPT, GP-D and GP-U on a newer model of the same
+frame start SCP at the local optima of the last plan with that method (:mod:`~gpis_grasp_ros.core.planners.
+warm_start`): those still valid on the new mean shape, at most 3/4 of N_g, fresh heuristic grasps for the rest.
+A request on the model already planned on starts fresh, so its answer depends on the model and the seed only.
+
 **The first model.** A request arriving before any model waits up to ``model_wait`` s for one (a
 model published just before the request may still be being taken) before it is answered
 "no GPIS received yet".
@@ -91,6 +96,8 @@ ACTION_GOAL_THREADS = 16
 TRIM_PERIOD = 2.0
 #: Answers to seeded service calls kept for callers that ask again (cleared when a new model arrives).
 ANSWERS_KEPT = 256
+#: (frame_id, method) pairs whose last plan's optima are kept as warm starts (least recently planned dropped).
+WARM_STARTS_KEPT = 16
 #: Range of the uncertainty_penalty parameter; requests outside it (other than negative = default) are rejected.
 LAMBDA_RANGE = (0.0, 1.0e8)
 
@@ -113,6 +120,7 @@ class PlannerConfig:
     grasp_height: float = -1.0  # m above the table; negative = automatic (conversions.grasp_height_for)
     object_height: float = 0.0  # m, for the automatic grasp height; 0 = unknown
     jaw_height: float = conversions.DEFAULT_JAW_HEIGHT  # m, jaw pad height along the approach
+    warm_start: bool = True  # SCP planners start at the previous model's optima (core/planners/warm_start.py)
 
     @property
     def gripper(self) -> GripperParams:
@@ -138,6 +146,10 @@ PARAMETERS = ParamTable('planner_node', [
           high=LAMBDA_RANGE[1]),
     Param('antipodal_alpha', float, 'alpha of eq. 5: bound on |n1 + n2|^2 of the antipodal constraint', _PP,
           low=0.0, high=4.0),
+    Param('warm_start', bool, 'replanning: GP-GPIS-OPT / GP-D / GP-U on a newer model of the same frame start at the '
+          'previous plan\'s local optima still valid on the new mean shape (at most 3/4 of N_g; fresh heuristic grasps '
+          'for the rest); false = fresh starts only, each plan reproducible from its model and seed',
+          PlannerConfig),
     Param('gp_p_adaptive', bool, 'GP-P: successive-halving Monte Carlo (true) or every candidate on all S shape '
           'samples as in the paper (false); the final choice uses all S either way', _PP),
     *gripper_params(('jaw_width', 'max_opening', 'friction_coefficient', 'position_noise', 'contact_patch')),
@@ -236,6 +248,9 @@ class PlannerNode(GuardedNode):
         self._answers: collections.OrderedDict[tuple, Any] = collections.OrderedDict()  # key -> response
         self._keyed: dict[tuple, PlanJob] = {}  # key -> job in progress
         self._answer_basis: tuple = (None, None)  # the model and configuration the kept answers were planned with
+        #: (frame_id, method) -> (the model planned on, its plan's optima): the next model's SCP starts
+        self._warm: collections.OrderedDict[tuple[str, str], tuple[Any, planners.WarmStart]] = \
+            collections.OrderedDict()
         self._watchdog = threading.Thread(target=self._watch_deadlines, name='grasp-planning-deadlines', daemon=True)
         self._watchdog.start()
         requests = ReentrantCallbackGroup()
@@ -428,10 +443,33 @@ class PlannerNode(GuardedNode):
         control = planners.PlanControl(should_stop=should_stop, on_progress=job.on_progress)
         params = self._planner_params(job)
         try:
-            job.result = planners.plan(job.method, job.posterior, params, seed=job.seed, control=control)
+            job.result = planners.plan(job.method, job.posterior, params, seed=job.seed, control=control,
+                                       warm_start=self._warm_start(job))
             job.stopped = job.stopped or str(getattr(job.result, 'stopped', '') or '')
+            self._keep_optima(job)
         except Exception as exc:  # noqa: BLE001 - reported to the caller, never kills the node
             job.error = exc
+
+    def _warm_start(self, job: PlanJob) -> planners.WarmStart | None:
+        """The optima of the last plan with this method on an older model of the job's frame (warm_start on)."""
+        if not job.config.warm_start or job.method not in planners.WARM_METHODS:
+            return None
+        with self._lock:
+            kept = self._warm.get((job.posterior.geometry.frame_id, job.method))
+        return None if kept is None or kept[0] is job.model else kept[1]
+
+    def _keep_optima(self, job: PlanJob) -> None:
+        """Keep a finished plan's optima as the next model's warm start (the last plan to finish wins)."""
+        result = job.result
+        if job.method not in planners.WARM_METHODS or result is None or result.stopped or not result.restarts:
+            return
+        optima = planners.WarmStart.from_result(result, job.posterior.geometry)
+        key = (job.posterior.geometry.frame_id, job.method)
+        with self._lock:
+            self._warm[key] = (job.model, optima)
+            self._warm.move_to_end(key)
+            while len(self._warm) > WARM_STARTS_KEPT:
+                self._warm.popitem(last=False)
 
     def _planner_params(self, job: PlanJob) -> planners.PlannerParams:
         """The node's planner settings with the request's N_g or K and λ."""
