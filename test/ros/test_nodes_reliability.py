@@ -61,7 +61,7 @@ class Gate:
         self.stops: list[str] = []
         monkeypatch.setattr(planners, 'plan', self)
 
-    def __call__(self, method, posterior, params=None, seed=None, control=None):
+    def __call__(self, method, posterior, params=None, seed=None, control=None, warm_start=None):
         self.started.set()
         while not self.release.wait(0.005):
             reason = control.should_stop() if control is not None else None
@@ -69,8 +69,8 @@ class Gate:
                 self.stops.append(reason)
                 # the real planner honours the stop at its first checkpoint
                 return self.real(method, posterior, params, seed=seed,
-                                 control=planners.PlanControl(should_stop=lambda r=reason: r))
-        return self.real(method, posterior, params, seed=seed, control=control)
+                                 control=planners.PlanControl(should_stop=lambda r=reason: r), warm_start=warm_start)
+        return self.real(method, posterior, params, seed=seed, control=control, warm_start=warm_start)
 
 
 class Graph:
