@@ -2,9 +2,10 @@
 placing a no-return pixel on its ray, and the march that finds the table points under a seen surface.
 
 They do per point what the array code around them would do with one temporary array per operation (the
-same IEEE operations in the same order, so the same numbers), but point by point with early exits: a column
-is drawn sample by sample, and a ray's search stops at its first sample under the prism and a sample's test
-at its first pixel off the object. ``cam`` is (fx, fy, cx, cy) of :class:`~.camera.CameraIntrinsics`
+same IEEE operations in the same order, so the same numbers), but point by point with early exits: a ray's
+search stops at its first sample under the prism and a sample's test at its first pixel off the object. The
+projections of a column's samples and of a segment's inner points are computed in a branch-free loop the
+compiler vectorises, then tested. ``cam`` is (fx, fy, cx, cy) of :class:`~.camera.CameraIntrinsics`
 (:func:`camera_vector`)."""
 
 from __future__ import annotations
@@ -51,30 +52,55 @@ def _pixel(x, y, z, cam, width, height):
     return int(u), int(v)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model='numpy')
+def _fractions(m):
+    """``k / den`` at [den, k] for den, k <= m: the divisions of a column's sample fractions, done once."""
+    out = np.zeros((m + 1, m + 1))
+    for den in range(1, m + 1):
+        for k in range(m + 1):
+            out[den, k] = k / den
+    return out
+
+
+@njit(cache=True, nogil=True, error_model='numpy')
 def draw_columns(foot, h, n, normal, include_point, cam, zbuf, u0, v0, in_image):
     """Nearest depth of the solid columns over the pixels of ``zbuf`` (updated in place).
 
     Column i has ``n[i]`` samples ``foot[i] + (k / n[i] h[i]) normal`` (``k / (n[i] - 1)`` with
     ``include_point``), k = 0 .. n[i] - 1; a sample's pixel is ``CameraIntrinsics.pixel_index`` of it with
     ``in_image`` (zbuf is then the image, ``u0 = v0 = 0``), else its rounded projection minus (u0, v0), kept
-    when it falls on zbuf."""
+    when it falls on zbuf. A column's projections are computed first, in a loop without branches (the compiler
+    vectorises it; ``error_model='numpy'``: no zero-division branch, and no sample is divided by a zero depth
+    that was not before), then drawn."""
     rows, cols = zbuf.shape
+    m = 1
+    for i in range(n.shape[0]):
+        m = max(m, n[i])
+    frac = _fractions(m)
+    us = np.empty(m)
+    vs = np.empty(m)
+    zs = np.empty(m)
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     for i in range(foot.shape[0]):
         ni = n[i]
-        den = ni - 1 if include_point else ni
+        row = frac[ni - 1 if include_point else ni]
         for k in range(ni):
-            s = (k / den) * h[i]
+            s = row[k] * h[i]
             x = foot[i, 0] + s * normal[0]
             y = foot[i, 1] + s * normal[1]
             z = foot[i, 2] + s * normal[2]
-            if in_image:
-                u, v = _pixel(x, y, z, cam, cols, rows)
-                if u < 0:
+            us[k] = np.rint(cx + fx * x / z)
+            vs[k] = np.rint(cy + fy * y / z)
+            zs[k] = z
+        for k in range(ni):
+            z = zs[k]
+            if in_image:  # _pixel
+                if not (z > 0.0 and us[k] >= 0.0 and us[k] < cols and vs[k] >= 0.0 and vs[k] < rows):
                     continue
+                u, v = int(us[k]), int(vs[k])
             else:
-                u = int(np.rint(cam[2] + cam[0] * x / z)) - u0
-                v = int(np.rint(cam[3] + cam[1] * y / z)) - v0
+                u = int(us[k]) - u0
+                v = int(vs[k]) - v0
                 if u < 0 or u >= cols or v < 0 or v >= rows:
                     continue
             if z < zbuf[v, u]:
@@ -87,13 +113,21 @@ def _on_object(x, y, z, cam, obj):
     return u >= 0 and obj[v, u]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model='numpy')
 def prism_heights(ray, ray_n, top_h, normal, offset, fractions, inner, cam, obj):
     """Height of each ray's first sample under the object's prism (0 where none), searched from the top down.
 
     Ray i is sampled at heights ``top_h[i] fractions[j]``; a sample's foot (where the ray is at that height,
     dropped onto the plane) is under the prism when the vertical segment from it up ``top_h[i]`` projects onto
-    ``obj`` pixels at both ends and at the ``inner`` fractions of the way up."""
+    ``obj`` pixels at both ends and at the ``inner`` fractions of the way up. The inner points' projections are
+    computed in a loop without branches (vectorised; ``error_model='numpy'``: a zero depth gives no exception,
+    and such a point is off the object either way), then looked up in ``inner``'s order."""
+    rows, cols = obj.shape
+    fu, fv = cam[0], cam[1]
+    cu, cv = cam[2], cam[3]
+    pu = np.empty(inner.shape[0])
+    pv = np.empty(inner.shape[0])
+    pz = np.empty(inner.shape[0])
     out = np.zeros(ray.shape[0])
     for i in range(ray.shape[0]):
         lx = top_h[i] * normal[0]
@@ -107,9 +141,16 @@ def prism_heights(ray, ray_n, top_h, normal, offset, fractions, inner, cam, obj)
             fz = ray[i, 2] * t - hk * normal[2]
             if not (_on_object(fx, fy, fz, cam, obj) and _on_object(fx + lx, fy + ly, fz + lz, cam, obj)):
                 continue
+            for m in range(inner.shape[0]):
+                f = inner[m]
+                z = fz + f * lz
+                pu[m] = np.rint(cu + fu * (fx + f * lx) / z)
+                pv[m] = np.rint(cv + fv * (fy + f * ly) / z)
+                pz[m] = z
             under = True
-            for f in inner:
-                if not _on_object(fx + f * lx, fy + f * ly, fz + f * lz, cam, obj):
+            for m in range(inner.shape[0]):  # _on_object
+                if not (pz[m] > 0.0 and pu[m] >= 0.0 and pu[m] < cols and pv[m] >= 0.0 and pv[m] < rows
+                        and obj[int(pv[m]), int(pu[m])]):
                     under = False
                     break
             if under:
