@@ -29,6 +29,7 @@ from gpis_grasp_ros.core.sensing.params import (
     PRISM_STEP_M,
     SensingParams,
 )
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, under_prism
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -276,7 +277,7 @@ def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: M
         # the body's silhouette: its parts closed over gaps narrower than a body's core disc, holes filled
         disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (CHROMA_CORE_PX, CHROMA_CORE_PX))
         target_px = _filled(cv2.morphologyEx(whole.astype(np.uint8), cv2.MORPH_CLOSE, disc)) & (valid | missing_px) \
-            & np.isfinite(foot_xy).all(axis=-1)
+            & all_finite(foot_xy)
         body_height, body_xy = clear_body_height(target_px, fit.table, intrinsics,
                                                  known_height_m=params.clear_body_height_m)
         if body_xy.shape[0] >= 3:  # the grid spans the body's footprint, not the table seen through it

@@ -18,6 +18,7 @@ from gpis_grasp_ros.core.sensing.params import (
     CHROMA_SMOOTH_PX,
     SensingParams,
 )
+from gpis_grasp_ros.core.sensing.pixel_kernels import vector_norm
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
 
@@ -31,7 +32,7 @@ def shadow_line_distance(rgb: np.ndarray, table_rgb: np.ndarray) -> tuple[np.nda
     t = np.asarray(table_rgb, dtype=np.float64)
     ratio = (rgb @ t) / max(float(t @ t), 1e-9)
     alpha = np.clip(ratio, 0.0, 1.0)
-    return np.linalg.norm(rgb - alpha[..., None] * t, axis=-1), ratio
+    return vector_norm(rgb - alpha[..., None] * t), ratio
 
 
 @dataclass(frozen=True)
@@ -111,12 +112,12 @@ def chromaticity_distance(rgb: np.ndarray, train: np.ndarray, smooth_px: float =
     img = np.asarray(rgb, dtype=np.float32)
     if smooth_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), smooth_px, borderType=cv2.BORDER_REPLICATE)
-    total = img.sum(axis=-1)
+    total = img[..., 0] + img[..., 1] + img[..., 2]  # img.sum(axis=-1): left to right
     chroma = img / np.maximum(total, 1e-3)[..., None]
-    samples = chroma[train]
+    samples = chroma.reshape(-1, 3)[np.flatnonzero(train)]  # chroma[train]
     if samples.shape[0] < 20:
         return np.zeros(total.shape), 0.0, 1.0
-    dist = np.linalg.norm(chroma - np.median(samples, axis=0), axis=-1)
+    dist = vector_norm(chroma - np.median(samples, axis=0))
     med = float(np.median(dist[train]))
     scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(np.median(np.abs(dist[train] - med))))
     # the chromaticity of a darker pixel is noisier (shot noise over less light): its spread is the table's

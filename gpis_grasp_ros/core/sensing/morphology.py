@@ -10,11 +10,22 @@ from numba import njit
 def nearest_pixel(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For every pixel (or raster cell) of ``mask`` (H x W bool, at least one True): the distance to the nearest
     True pixel (float32, pixels; 0 on them) and that pixel's (row, column) (H x W x 2 int)."""
+    dist, nearest_at = nearest_pixel_lookup(mask)
+    return dist, nearest_at(...)
+
+
+def nearest_pixel_lookup(mask: np.ndarray):
+    """:func:`nearest_pixel`'s distances, and a function giving the (row, column) of the nearest True pixel at the
+    pixels an index selects (``nearest_at((vs, us))`` = ``nearest[vs, us]``) without the whole H x W x 2 array."""
     m = np.asarray(mask, dtype=bool)
     dist, nearest = cv2.distanceTransformWithLabels((~m).astype(np.uint8), cv2.DIST_L2, 5,
                                                     labelType=cv2.DIST_LABEL_PIXEL)
     seen = np.argwhere(m)  # in the (row-major) order of OpenCV's pixel labels
-    return dist, seen[np.clip(nearest - 1, 0, len(seen) - 1)]
+
+    def nearest_at(index) -> np.ndarray:
+        return seen[np.clip(nearest[index] - 1, 0, len(seen) - 1)]
+
+    return dist, nearest_at
 
 
 def _nearest_label(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

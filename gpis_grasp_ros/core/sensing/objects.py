@@ -35,7 +35,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SPLIT_NECK_M,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import raster_cells
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, raster_cells
 from gpis_grasp_ros.core.sensing.steps import cell_heights, split_height_steps
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
@@ -536,7 +536,7 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.morph_kernel_px, params.morph_kernel_px))
         evidence = cv2.morphologyEx(evidence.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
     h_ok = np.nan_to_num(height, nan=0.0)
-    evidence &= (h_ok > -fit.band) & (h_ok < params.max_object_height_m) & np.isfinite(foot_xy).all(axis=-1)
+    evidence &= (h_ok > -fit.band) & (h_ok < params.max_object_height_m) & all_finite(foot_xy)
     if params.roi_px is not None:
         u0, v0, u1, v1 = params.roi_px
         uu, vv = np.meshgrid(np.arange(w), np.arange(h))

@@ -13,13 +13,14 @@ from scipy.special import ndtr
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.evidence import Evidence
-from gpis_grasp_ros.core.sensing.morphology import _filled, nearest_pixel
+from gpis_grasp_ros.core.sensing.morphology import _filled, nearest_pixel_lookup
 from gpis_grasp_ros.core.sensing.params import (
     MISSING_BRIDGE_M,
     MISSING_HEIGHT_WINDOW_M,
     SHADOW_HULL_SPAN_PX,
     SensingParams,
 )
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, pixel_feet, vector_norm
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, draw_columns, prism_heights
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -69,7 +70,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     k = max(3, 2 * int(round(0.5 * window_m / max(footprint_m, 1e-6))) + 1)
     h_above = np.where(above, np.nan_to_num(height), 0.0).astype(np.float32)
     top = cv2.dilate(h_above, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
-    dist_px, nearest = nearest_pixel(above)
+    dist_px, nearest_at = nearest_pixel_lookup(above)
     n_reg, region = cv2.connectedComponents(missing.astype(np.uint8), connectivity=8)
     touching = np.zeros(n_reg, dtype=bool)
     touching[np.unique(region[missing & (dist_px <= 1.5)])] = True
@@ -77,7 +78,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     vs, us = np.nonzero(missing & touching[region] & (dist_px * footprint_m <= reach_m))
     if vs.size == 0:
         return (out, tested) if return_tested else out
-    near = nearest[vs, us]
+    near = nearest_at((vs, us))
     top_h = top[near[:, 0], near[:, 1]].astype(np.float64)
     ray = rays[vs, us]
     ray_n = ray @ table.n
@@ -92,7 +93,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     # at every image pixel it spans (the object mask as it is, not dilated)
     lift = top_h[:, None] * table.n
     top_foot = ray * ((top_h - table.offset_m) / ray_n)[:, None] - lift
-    span = np.linalg.norm(intrinsics.project(top_foot + lift) - intrinsics.project(top_foot), axis=-1)
+    span = vector_norm(intrinsics.project(top_foot + lift) - intrinsics.project(top_foot))
     inner = np.linspace(0.0, 1.0, int(np.clip(np.ceil(np.nanmax(span, initial=1.0)) + 1, 2, 64)))[1:-1]
     fractions = np.linspace(1.0, 0.0, samples)[:-1]  # the last sample is the table itself (height 0)
     inner = inner[coarse_to_fine(inner.size)]  # the same test, sooner off the object
@@ -133,7 +134,7 @@ def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray
     top = points[solid]
     h = np.nan_to_num(height[solid])
     foot = top - h[:, None] * table.n
-    span = np.linalg.norm(intrinsics.project(top) - intrinsics.project(foot), axis=-1)
+    span = vector_norm(intrinsics.project(top) - intrinsics.project(foot))
     n = np.clip(np.ceil(np.nan_to_num(span)).astype(np.int64) + 1, 1, max_samples)  # samples per column
     draw_columns(foot, h, n, table.n, False, camera_vector(intrinsics), entry, 0, 0, True)  # the point itself excluded
     # behind the columns of the whole 3 x 3 neighbourhood: a column rounded onto the pixel beside the
@@ -163,12 +164,12 @@ def column_zbuffer(top: np.ndarray, h: np.ndarray, table: TableFrame, intrinsics
     top = np.asarray(top, dtype=np.float64) - origin
     with np.errstate(invalid='ignore', divide='ignore'):
         uv_top, uv_foot = intrinsics.project(top), intrinsics.project(foot)
-    ok = (np.isfinite(uv_top).all(axis=-1) & np.isfinite(uv_foot).all(axis=-1) & (foot[:, 2] > 0)
+    ok = (all_finite(uv_top) & all_finite(uv_foot) & (foot[:, 2] > 0)
           & (top[:, 2] > 0))
     top, foot, h, uv_top, uv_foot = top[ok], foot[ok], h[ok], uv_top[ok], uv_foot[ok]
     if top.shape[0] == 0:
         return zbuf
-    n = np.clip(np.ceil(np.linalg.norm(uv_top - uv_foot, axis=-1)).astype(np.int64) + 1, 2, max_samples)
+    n = np.clip(np.ceil(vector_norm(uv_top - uv_foot)).astype(np.int64) + 1, 2, max_samples)
     draw_columns(foot, h, n, table.n, True, camera_vector(intrinsics), zbuf, u0, v0, False)
     return zbuf
 
@@ -217,9 +218,9 @@ def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.nd
         h_img = np.where(solid, np.nan_to_num(height), 0.0).astype(np.float32)
         k = max(3, 2 * int(round(0.5 * MISSING_HEIGHT_WINDOW_M / max(footprint_m, 1e-6))) + 1)
         local_top = cv2.dilate(h_img, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
-        _, nearest = nearest_pixel(solid)
-        top_h = local_top[nearest[vs, us, 0], nearest[vs, us, 1]].astype(np.float64)
-        span = np.linalg.norm(intrinsics.project(p + top_h[:, None] * table.n) - intrinsics.project(p), axis=-1)
+        near = nearest_pixel_lookup(solid)[1]((vs, us))
+        top_h = local_top[near[:, 0], near[:, 1]].astype(np.float64)
+        span = vector_norm(intrinsics.project(p + top_h[:, None] * table.n) - intrinsics.project(p))
         keep = span < float(min_hull_span_px)
         vs, us, p = vs[keep], us[keep], p[keep]
         if vs.size == 0:
@@ -269,8 +270,9 @@ def move_seen_through(frames: AveragedFrames, fit: TableFit, meas: Measurement, 
         if through_px.any():
             frames = frames._replace(z_mean=np.where(through_px, entry, frames.z_mean))
             meas = measure(frames.z_mean, frames, fit.table, fit.rays, fit.ray_n, params.sensor)
-            ev = ev._replace(p_d=np.where(through_px, ndtr((np.nan_to_num(meas.height) - fit.h_thr) / meas.s_h),
-                                          ev.p_d))
+            p_d = ev.p_d.copy()  # measured again where moved (the same per-pixel operations, on those pixels only)
+            p_d[through_px] = ndtr((np.nan_to_num(meas.height[through_px]) - fit.h_thr) / meas.s_h[through_px])
+            ev = ev._replace(p_d=p_d)
     return frames, meas, ev, through_px
 
 
@@ -307,11 +309,9 @@ def place_feet(frames: AveragedFrames, fit: TableFit, meas: Measurement, missing
     off_hull |= shadow_px  # the sensor's shadow: table it did not measure
     hit_points, hit = table.ray_intersection(rays)
     ray_dot = rays @ normal
-    ray_cos = np.maximum(np.abs(ray_dot) / np.linalg.norm(rays, axis=-1), 1e-3)  # cosine of a ray to the normal
-    with np.errstate(invalid='ignore', divide='ignore'):
-        t_missing = np.where(hit, (h_missing - table.offset_m) / np.where(hit, ray_dot, -1.0), np.nan)
-    missing_points = rays * t_missing[..., None] - h_missing[..., None] * normal
-    foot = np.where(valid[..., None], meas.points - np.nan_to_num(height)[..., None] * normal, missing_points)
-    foot_xy, _ = table.to_table(foot)
-    foot_xy = np.where((valid | hit)[..., None], foot_xy, np.nan)
+    ray_cos = np.maximum(np.abs(ray_dot) / vector_norm(rays), 1e-3)  # cosine of a ray to the normal
+    # a seen pixel's foot p - h n; a no-return pixel's where its ray is h_missing above the plane, dropped onto it
+    foot = pixel_feet(rays, ray_dot, meas.points, height, h_missing, valid, hit, normal, float(table.offset_m))
+    foot_xy = np.ascontiguousarray(table.to_table(foot)[0])
+    foot_xy[~(valid | hit)] = np.nan
     return Feet(foot_xy, h_missing, off_hull, hit_points, ray_cos)

@@ -1,7 +1,8 @@
-"""Compiled (numba) per-pixel passes that replace chains of whole-image array operations.
+"""Per-pixel passes that replace slower whole-image array operations: compiled (numba) loops and array helpers.
 
-Each does per pixel the same IEEE operations in the same order as the array code it replaces (kept in
-``test/core/sensing/test_sensing_pixel_kernels.py`` as the reference), in one pass without temporaries."""
+Each does per pixel the same IEEE operations in the same order as the array code it replaces (kept in the tests
+``test/core/sensing/test_sensing_pixel_kernels.py`` and ``test_sensing_compiled_morphology.py`` as the reference),
+in one pass without temporaries or without numpy's strided reduction of a short last axis."""
 
 from __future__ import annotations
 
@@ -9,6 +10,23 @@ import math
 
 import numpy as np
 from numba import njit
+
+
+def vector_norm(x: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(x, axis=-1)`` of a float array ``(..., k)``, k small: numpy reduces a short axis left to
+    right (``sqrt((x0 x0 + x1 x1) + x2 x2)``, its initial zero adding nothing), as this does per component."""
+    total = x[..., 0] * x[..., 0]
+    for k in range(1, x.shape[-1]):
+        total = total + x[..., k] * x[..., k]
+    return np.sqrt(total)
+
+
+def all_finite(x: np.ndarray) -> np.ndarray:
+    """``np.isfinite(x).all(axis=-1)``, per component of the last axis."""
+    out = np.isfinite(x[..., 0])
+    for k in range(1, x.shape[-1]):
+        out &= np.isfinite(x[..., k])
+    return out
 
 
 def raster_cells(xy: np.ndarray, origin: np.ndarray, res: float, shape: tuple[int, int]
@@ -36,3 +54,55 @@ def _raster_cells(xy, o0, o1, res, nx, ny):
             iy[k] = int(b)
             ok[k] = True
     return ix, iy, ok
+
+
+def pixel_feet(rays, ray_dot, points, height, h_missing, valid, hit, normal, offset) -> np.ndarray:
+    """(H, W, 3) camera-frame feet of the pixels (``place_feet``): ``points - nan_to_num(height) normal`` where
+    ``valid``; elsewhere the ray's point ``h_missing`` above the plane dropped onto it, ``rays t - h_missing normal``
+    with ``t = (h_missing - offset) / ray_dot`` where the ray hits the plane (``hit``), NaN where it does not."""
+    out = np.empty(points.shape)
+    _pixel_feet(np.ascontiguousarray(rays).reshape(-1, 3), np.ascontiguousarray(ray_dot).ravel(),
+                np.ascontiguousarray(points).reshape(-1, 3), np.ascontiguousarray(height).ravel(),
+                np.ascontiguousarray(h_missing, dtype=np.float64).ravel(), np.ascontiguousarray(valid).ravel(),
+                np.ascontiguousarray(hit).ravel(), np.ascontiguousarray(normal, dtype=np.float64), float(offset),
+                out.reshape(-1, 3))
+    return out
+
+
+@njit(cache=True, nogil=True, error_model='numpy')
+def _pixel_feet(rays, ray_dot, points, height, h_missing, valid, hit, normal, offset, out):
+    big = np.finfo(np.float64).max
+    for k in range(out.shape[0]):
+        if valid[k]:
+            h = height[k]  # np.nan_to_num
+            if math.isnan(h):
+                h = 0.0
+            elif math.isinf(h):
+                h = big if h > 0 else -big
+            for c in range(3):
+                out[k, c] = points[k, c] - h * normal[c]
+        else:
+            hm = h_missing[k]
+            t = (hm - offset) / ray_dot[k] if hit[k] else np.nan
+            for c in range(3):
+                out[k, c] = rays[k, c] * t - hm * normal[c]
+
+
+def max_tangent(cos: np.ndarray) -> float:
+    """``np.nanmax(sqrt(max(1 - cos^2, 0)) / cos)``: the largest tangent of the angles whose cosines are ``cos``
+    (NaN ones ignored)."""
+    return float(_max_tangent(np.ascontiguousarray(cos, dtype=np.float64).ravel()))
+
+
+@njit(cache=True, nogil=True, error_model='numpy')
+def _max_tangent(cos):
+    best = np.nan
+    for k in range(cos.size):
+        c = cos[k]
+        s = 1.0 - c * c
+        if not s >= 0.0 and not math.isnan(s):  # np.maximum(s, 0.0), NaN kept
+            s = 0.0
+        t = math.sqrt(s) / c
+        if not math.isnan(t) and (math.isnan(best) or t > best):
+            best = t
+    return best

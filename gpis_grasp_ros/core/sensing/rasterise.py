@@ -14,6 +14,7 @@ from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.clear_body import Target, _clear_body_cells, prism_alternatives, prism_footprint
 from gpis_grasp_ros.core.sensing.occlusion import Feet
 from gpis_grasp_ros.core.sensing.params import HIDDEN_SUBCELLS, MISSING_HEIGHT_WINDOW_M, SensingParams
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, max_tangent, vector_norm
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, under_seen_surface
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -80,7 +81,7 @@ def _hidden_cells(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_xy:
     covered = in0 & above[v0, u0]
     h_seen = np.where(covered, np.nan_to_num(height[v0, u0]), 0.0)
     u1, v1, in1 = intrinsics.pixel_index(geometry.to_sensor(centres, h_seen))
-    dist = np.linalg.norm(foot_xy[v1, u1] - centres, axis=-1)
+    dist = vector_norm(foot_xy[v1, u1] - centres)
     under = in1 & np.isfinite(dist) & (dist <= tol_m)
     return covered & ~under
 
@@ -214,7 +215,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     cell = (row[vs, us] * m + col[vs, us]).astype(np.int64)
     box = np.s_[max(int(vs.min()) - 2, 0):int(vs.max()) + 3, max(int(us.min()) - 2, 0):int(us.max()) + 3]
     wt_box = _table_area_weights(foot_xy[box], fit.table.to_table(feet.hit_points[box])[0],
-                                 np.isfinite(foot_xy[box]).all(axis=-1))
+                                 all_finite(foot_xy[box]))
     wt = wt_box[vs - box[0].start, us - box[1].start]
     seen_in_depth = target_px & valid & (p_d > 0.5)
     contact_px = target.contact_px.astype(np.float64)
@@ -236,8 +237,8 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     # cells holding only the feet of holes on the table beside the target (off its visual hull) are not between
     # the feet of seen pixels: no measurement, not interpolated from the target's cells next to them
     off_hull = feet.off_hull
-    unmeasured = np.bincount(np.where(in_grid & off_hull, np.nan_to_num(row) * m + np.nan_to_num(col), 0).astype(
-        np.int64)[in_grid & off_hull], minlength=m * m).reshape(m, m) > 0
+    sel = in_grid & off_hull
+    unmeasured = np.bincount((row[sel] * m + col[sel]).astype(np.int64), minlength=m * m).reshape(m, m) > 0
     for _ in range(int(math.ceil(footprint / res))):
         seen = (n_inf > 0).astype(np.float32)
         n_nb = cv2.filter2D(seen, -1, kernel3, borderType=cv2.BORDER_CONSTANT)
@@ -275,7 +276,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     ray_cos = feet.ray_cos
     hidden_part = _hidden_fraction(geometry, intrinsics, foot_xy, np.where(valid, np.nan_to_num(height), h_missing),
                                    (valid & (np.nan_to_num(height) > h_thr)) | (h_missing > 0), footprint,
-                                   float(np.nanmax(np.sqrt(np.maximum(1.0 - ray_cos ** 2, 0.0)) / ray_cos)),
+                                   max_tangent(ray_cos),
                                    observed & (s_occ > 0))
     occupancy = np.clip(np.where(observed, s_occ / n_safe * (1.0 - hidden_part), 0.0), 0.0, 1.0)
     miss_c = s_miss / n_safe

@@ -10,6 +10,7 @@ import numpy as np
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.params import SUPPORT_MIN_PX, SUPPORT_RADIUS_M, SensingParams
+from gpis_grasp_ros.core.sensing.pixel_kernels import vector_norm
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 
@@ -109,7 +110,7 @@ def target_support(inlier: np.ndarray, points: np.ndarray, table: TableFrame, ra
     else:
         point = np.asarray(params.target_point, dtype=np.float64)
     xy = table.to_table(points[inlier])[0]
-    near = np.linalg.norm(xy - point, axis=-1) <= SUPPORT_RADIUS_M
+    near = vector_norm(xy - point) <= SUPPORT_RADIUS_M
     if near.sum() < SUPPORT_MIN_PX:
         return inlier
     out = np.zeros_like(inlier)

@@ -1,0 +1,78 @@
+"""The per-pixel passes and the column drawing against the array code they replace, bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, max_tangent, pixel_feet, vector_norm
+from gpis_grasp_ros.core.sensing.ray_kernels import draw_columns
+
+
+def _awkward(rng: np.random.Generator, shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
+    """Values over many magnitudes (additions that round differently in another order), with NaN and inf."""
+    x = (rng.standard_normal(shape) * np.exp(rng.uniform(-30, 30, shape))).astype(dtype)
+    x.ravel()[rng.choice(x.size, x.size // 50, replace=False)] = np.nan
+    x.ravel()[rng.choice(x.size, x.size // 100, replace=False)] = np.inf
+    return x
+
+
+@pytest.mark.parametrize('dtype', [np.float64, np.float32])
+@pytest.mark.parametrize('k', [2, 3])
+def test_vector_norm_and_all_finite_equal_numpy(dtype, k):
+    x = _awkward(np.random.default_rng(k), (97, 131, k), dtype)
+    got, want = vector_norm(x), np.linalg.norm(x, axis=-1)
+    assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(all_finite(x), np.isfinite(x).all(axis=-1))
+
+
+def test_pixel_feet_and_max_tangent_equal_the_array_code():
+    rng = np.random.default_rng(3)
+    h, w = 60, 80
+    rays = np.stack([*np.meshgrid(rng.uniform(-0.6, 0.6, w), rng.uniform(-0.5, 0.5, h)), np.ones((h, w))], axis=-1)
+    normal = np.array([0.1, -0.6, -0.79])
+    normal /= np.linalg.norm(normal)
+    ray_dot = rays @ normal
+    hit = ray_dot < -1e-9
+    points = rays * rng.uniform(0.3, 1.2, (h, w, 1))
+    height = _awkward(rng, (h, w))
+    h_missing = np.where(rng.random((h, w)) < 0.5, 0.0, rng.uniform(0.0, 0.1, (h, w)))
+    valid = rng.random((h, w)) < 0.6
+    offset = 0.7
+    with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
+        t_missing = np.where(hit, (h_missing - offset) / np.where(hit, ray_dot, -1.0), np.nan)
+        missing_points = rays * t_missing[..., None] - h_missing[..., None] * normal
+        want = np.where(valid[..., None], points - np.nan_to_num(height)[..., None] * normal, missing_points)
+        got = pixel_feet(rays, ray_dot, points, height, h_missing, valid, hit, normal, offset)
+    assert np.array_equal(got, want, equal_nan=True)
+    ray_cos = np.maximum(np.abs(ray_dot) / np.linalg.norm(rays, axis=-1), 1e-3)
+    ray_cos.ravel()[::17] = np.nan
+    ray_cos.ravel()[::23] = 1.5  # 1 - cos^2 < 0
+    assert max_tangent(ray_cos) == float(np.nanmax(np.sqrt(np.maximum(1.0 - ray_cos ** 2, 0.0)) / ray_cos))
+
+
+@pytest.mark.parametrize('include_point', [False, True])
+def test_draw_columns_equals_the_array_code(include_point):
+    rng = np.random.default_rng(5)
+    cam = np.array([600.0, 610.0, 64.3, 47.8])
+    rows, cols = 96, 128
+    normal = np.array([0.0, -0.5, -np.sqrt(0.75)])
+    n_col = 400
+    foot = np.stack([rng.uniform(-0.15, 0.15, n_col), rng.uniform(-0.1, 0.1, n_col), rng.uniform(0.5, 0.8, n_col)],
+                    axis=1)
+    h = rng.uniform(0.0, 0.12, n_col)
+    n = rng.integers(2, 40, n_col)
+    want = np.full((rows, cols), np.inf)
+    for i in range(n_col):
+        k = np.arange(n[i])
+        s = (k / (n[i] - 1 if include_point else n[i])) * h[i]
+        p = foot[i] + s[:, None] * normal
+        u, v = np.rint(cam[2] + cam[0] * p[:, 0] / p[:, 2]), np.rint(cam[3] + cam[1] * p[:, 1] / p[:, 2])
+        ok = (p[:, 2] > 0) & (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
+        np.minimum.at(want, (v[ok].astype(np.int64), u[ok].astype(np.int64)), p[ok, 2])
+    got = np.full((rows, cols), np.inf)
+    draw_columns(foot, h, n, normal, include_point, cam, got, 0, 0, True)
+    assert np.array_equal(got, want)
+    shifted = np.full((rows, cols), np.inf)  # a buffer over other pixels (u0, v0) = (10, -5)
+    draw_columns(foot, h, n, normal, include_point, cam, shifted, 10, -5, False)
+    assert np.array_equal(shifted[5:, :cols - 10], want[:rows - 5, 10:])
