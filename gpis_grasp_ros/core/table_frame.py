@@ -152,7 +152,7 @@ def fit_table_plane(points: np.ndarray, model: SensorModel, *, band_sigmas: floa
             the plane is seen edge-on (tilt above ``max_tilt_deg``).
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1) & (pts[:, 2] > 0)]
+    pts = pts[np.isfinite(pts[:, 0]) & np.isfinite(pts[:, 1]) & np.isfinite(pts[:, 2]) & (pts[:, 2] > 0)]
     if pts.shape[0] < 100:
         raise ValueError(f'only {pts.shape[0]} valid depth points: cannot estimate the table plane '
                          '(give table_plane, or check the depth image)')

@@ -18,7 +18,7 @@ from gpis_grasp_ros.core.sensing.params import (
     CHROMA_SMOOTH_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import vector_norm
+from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, norm_of
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
 
@@ -32,7 +32,7 @@ def shadow_line_distance(rgb: np.ndarray, table_rgb: np.ndarray) -> tuple[np.nda
     t = np.asarray(table_rgb, dtype=np.float64)
     ratio = (rgb @ t) / max(float(t @ t), 1e-9)
     alpha = np.clip(ratio, 0.0, 1.0)
-    return vector_norm(rgb - alpha[..., None] * t), ratio
+    return norm_of([rgb[..., k] - alpha * t[k] for k in range(3)]), ratio  # |rgb - alpha t|
 
 
 @dataclass(frozen=True)
@@ -114,10 +114,11 @@ def chromaticity_distance(rgb: np.ndarray, train: np.ndarray, smooth_px: float =
         img = cv2.GaussianBlur(img, (0, 0), smooth_px, borderType=cv2.BORDER_REPLICATE)
     total = img[..., 0] + img[..., 1] + img[..., 2]  # img.sum(axis=-1): left to right
     chroma = img / np.maximum(total, 1e-3)[..., None]
-    samples = chroma.reshape(-1, 3)[np.flatnonzero(train)]  # chroma[train]
+    samples = masked_rows(chroma, train)
     if samples.shape[0] < 20:
         return np.zeros(total.shape), 0.0, 1.0
-    dist = vector_norm(chroma - np.median(samples, axis=0))
+    c_table = np.median(samples, axis=0)
+    dist = norm_of([chroma[..., k] - c_table[k] for k in range(3)])  # |chroma - c_table|
     med = float(np.median(dist[train]))
     scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(np.median(np.abs(dist[train] - med))))
     # the chromaticity of a darker pixel is noisier (shot noise over less light): its spread is the table's

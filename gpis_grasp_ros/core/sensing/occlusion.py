@@ -20,7 +20,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SHADOW_HULL_SPAN_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, pixel_feet, vector_norm
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, masked_rows, pixel_feet, vector_norm
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, draw_columns, prism_heights
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -131,7 +131,7 @@ def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray
     entry = np.full(height.shape, np.inf)
     if not solid.any():
         return np.zeros(height.shape, dtype=bool), entry
-    top = points[solid]
+    top = masked_rows(points, solid)
     h = np.nan_to_num(height[solid])
     foot = top - h[:, None] * table.n
     span = vector_norm(intrinsics.project(top) - intrinsics.project(foot))

@@ -15,10 +15,21 @@ from numba import njit
 def vector_norm(x: np.ndarray) -> np.ndarray:
     """``np.linalg.norm(x, axis=-1)`` of a float array ``(..., k)``, k small: numpy reduces a short axis left to
     right (``sqrt((x0 x0 + x1 x1) + x2 x2)``, its initial zero adding nothing), as this does per component."""
-    total = x[..., 0] * x[..., 0]
-    for k in range(1, x.shape[-1]):
-        total = total + x[..., k] * x[..., k]
+    return norm_of([x[..., k] for k in range(x.shape[-1])])
+
+
+def norm_of(components: list[np.ndarray]) -> np.ndarray:
+    """:func:`vector_norm` of the vectors whose components are given (``x - y`` as ``[x[..., k] - y[k], ...]``:
+    the same differences, without the (..., k) array)."""
+    total = components[0] * components[0]
+    for c in components[1:]:
+        total = total + c * c
     return np.sqrt(total)
+
+
+def masked_rows(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``x[mask]`` of an (H, W, k) array and an (H, W) mask: the same rows in the same order, gathered faster."""
+    return np.ascontiguousarray(x).reshape(-1, x.shape[-1])[np.flatnonzero(mask)]
 
 
 def all_finite(x: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import numpy as np
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.params import SUPPORT_MIN_PX, SUPPORT_RADIUS_M, SensingParams
-from gpis_grasp_ros.core.sensing.pixel_kernels import vector_norm
+from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, norm_of
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 
@@ -45,7 +45,7 @@ def _table_frame(points: np.ndarray, valid: np.ndarray, params: SensingParams) -
             raise ValueError(f'table_depth_m must be positive metres, got {params.table_depth_m}')
         frame = TableFrame.from_plane(0.0, 0.0, -1.0, float(params.table_depth_m))
     else:
-        return fit_table_plane(points[valid], params.sensor, band_sigmas=params.plane_band_sigmas,
+        return fit_table_plane(masked_rows(points, valid), params.sensor, band_sigmas=params.plane_band_sigmas,
                                band_floor_m=params.plane_band_floor_m, min_inlier_fraction=params.min_plane_fraction,
                                max_tilt_deg=params.max_tilt_deg)
     if frame.tilt_deg > params.max_tilt_deg:
@@ -109,8 +109,8 @@ def target_support(inlier: np.ndarray, points: np.ndarray, table: TableFrame, ra
         point = table.to_table(hit_pt)[0]
     else:
         point = np.asarray(params.target_point, dtype=np.float64)
-    xy = table.to_table(points[inlier])[0]
-    near = vector_norm(xy - point) <= SUPPORT_RADIUS_M
+    xy = table.to_table(masked_rows(points, inlier))[0]
+    near = norm_of([xy[:, 0] - point[0], xy[:, 1] - point[1]]) <= SUPPORT_RADIUS_M
     if near.sum() < SUPPORT_MIN_PX:
         return inlier
     out = np.zeros_like(inlier)

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, max_tangent, pixel_feet, vector_norm
+from gpis_grasp_ros.core.sensing.pixel_kernels import (
+    all_finite,
+    masked_rows,
+    max_tangent,
+    norm_of,
+    pixel_feet,
+    vector_norm,
+)
 from gpis_grasp_ros.core.sensing.ray_kernels import draw_columns
 
 
@@ -24,6 +31,12 @@ def test_vector_norm_and_all_finite_equal_numpy(dtype, k):
     got, want = vector_norm(x), np.linalg.norm(x, axis=-1)
     assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
     assert np.array_equal(all_finite(x), np.isfinite(x).all(axis=-1))
+    y = _awkward(np.random.default_rng(k + 10), (k,), dtype)
+    want = np.linalg.norm(x - y, axis=-1)
+    got = norm_of([x[..., i] - y[i] for i in range(k)])
+    assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
+    mask = np.random.default_rng(k).random(x.shape[:2]) < 0.4
+    assert np.array_equal(masked_rows(x, mask), x[mask], equal_nan=True)
 
 
 def test_pixel_feet_and_max_tangent_equal_the_array_code():
