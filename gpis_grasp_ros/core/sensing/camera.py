@@ -11,6 +11,7 @@ import numpy as np
 from numba import njit
 
 from gpis_grasp_ros.core.noise_model import effective_frame_count
+from gpis_grasp_ros.core.sensing.pixel_kernels import nan_to_num
 
 if TYPE_CHECKING:
     from gpis_grasp_ros.core.sensing.params import SensingParams
@@ -39,8 +40,11 @@ class CameraIntrinsics:
         """(H, W, 3) camera-frame rays ((u - cx) / fx, (v - cy) / fy, 1) of every pixel."""
         u = (np.arange(self.width, dtype=np.float64) - self.cx) / self.fx
         v = (np.arange(self.height, dtype=np.float64) - self.cy) / self.fy
-        uu, vv = np.meshgrid(u, v)
-        return np.stack([uu, vv, np.ones_like(uu)], axis=-1)
+        out = np.empty((self.height, self.width, 3))
+        out[..., 0] = u[None, :]
+        out[..., 1] = v[:, None]
+        out[..., 2] = 1.0
+        return out
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Camera-frame points (..., 3) (m) → pixel coordinates (..., 2) as (u, v)."""
@@ -58,8 +62,8 @@ class CameraIntrinsics:
         u, v = uv[..., 0], uv[..., 1]
         inside = (p[..., 2] > 0) & np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < self.width) & (v >= 0) \
             & (v < self.height)
-        return (np.clip(np.nan_to_num(u), 0, self.width - 1).astype(np.int64),
-                np.clip(np.nan_to_num(v), 0, self.height - 1).astype(np.int64), inside)
+        return (np.clip(nan_to_num(u), 0, self.width - 1).astype(np.int64),
+                np.clip(nan_to_num(v), 0, self.height - 1).astype(np.int64), inside)
 
 
 def _as_frames(frames: np.ndarray | Sequence[np.ndarray], name: str, channels: int | None) -> np.ndarray:

@@ -29,7 +29,7 @@ from gpis_grasp_ros.core.sensing.params import (
     PRISM_STEP_M,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, nan_to_num
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, under_prism
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -258,7 +258,7 @@ def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: M
     p_c = 1); a clear body's silhouette and prism height; otherwise the holes off its visual hull removed."""
     raster, px_labels, target, target_px = objects.raster, objects.px_labels, objects.target, objects.target_px
     valid, p_d, p_c, foot_xy = frames.valid, ev.p_d, ev.p_c, feet.foot_xy
-    table_level = valid & (p_d <= 0.5) & (np.abs(np.nan_to_num(meas.height)) <= fit.h_thr)
+    table_level = valid & (p_d <= 0.5) & (np.abs(nan_to_num(meas.height)) <= fit.h_thr)
     through = seen_through(raster, target, foot_xy, px_labels, table_level, params.transparent_close_m)
     depth_fraction = float(np.mean(p_d[target_px] > 0.5))
     fragments = np.zeros_like(target_px)

@@ -18,7 +18,7 @@ from gpis_grasp_ros.core.sensing.params import (
     CHROMA_SMOOTH_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, norm_of
+from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, nan_to_num, norm_of
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
 
@@ -139,7 +139,7 @@ class Evidence(NamedTuple):
 def soft_evidence(frames: AveragedFrames, fit: TableFit, meas: Measurement, params: SensingParams) -> Evidence:
     """p_d = Phi((h - h_thr) / s_h) and the colour test p_c, each cleaned by a grey-level opening then closing;
     a colour darker than the table on its shadow line defers to depth."""
-    p_d = np.where(frames.valid, ndtr((np.nan_to_num(meas.height) - fit.h_thr) / meas.s_h), 0.0)
+    p_d = np.where(frames.valid, ndtr((nan_to_num(meas.height) - fit.h_thr) / meas.s_h), 0.0)
     colour, p_c, c_ratio = _colour_evidence(frames.rgb_mean, fit.support, params)
     p_d = _morph_clean(p_d, params.morph_kernel_px)
     p_c = _morph_clean(p_c, params.morph_kernel_px)

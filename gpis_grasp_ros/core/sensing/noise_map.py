@@ -13,6 +13,7 @@ from scipy.ndimage import distance_transform_edt
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sdf import signed_distance
 from gpis_grasp_ros.core.sensing.params import SensingParams
+from gpis_grasp_ros.core.sensing.pixel_kernels import nan_to_num
 from gpis_grasp_ros.core.sensing.rasterise import Cells
 
 
@@ -25,7 +26,7 @@ def _foreign_missing_fraction(row: np.ndarray, col: np.ndarray, in_grid: np.ndar
     would be confidently wrong exactly where nothing was measured. Unweighted pixel counts of the
     cell's informative pixels plus the foreign ones; 0 where no pixel falls in the cell.
     """
-    idx = np.where(in_grid, np.nan_to_num(row) * m + np.nan_to_num(col), -1).astype(np.int64)
+    idx = np.where(in_grid, nan_to_num(row) * m + nan_to_num(col), -1).astype(np.int64)
     n_foreign = np.bincount(idx[in_grid & foreign], minlength=m * m)
     n_seen = np.bincount(idx[informative], minlength=m * m)
     with np.errstate(invalid='ignore', divide='ignore'):

@@ -35,7 +35,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SPLIT_NECK_M,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, raster_cells
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, nan_to_num, raster_cells
 from gpis_grasp_ros.core.sensing.steps import cell_heights, split_height_steps
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
@@ -136,7 +136,7 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
     origin = list(origin)
     seen = np.isfinite(cell_height) & (labels > 0)
     min_cells = FLAT_MIN_AREA_M2 / res ** 2
-    h = np.nan_to_num(cell_height)
+    h = nan_to_num(cell_height)
     # 4-neighbour smoothness edges between depth-seen cells of the same component
     ny, nx = labels.shape
     idx = np.arange(ny * nx).reshape(ny, nx)
@@ -317,7 +317,7 @@ def solid_pixels(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray, h_thr:
     depth-evidence threshold ``h_thr``."""
     ratio = _noise_ratio(height, s_h, inlier) if ratio is None else ratio
     thr = np.maximum(h_thr, SOLID_SIGMAS * ratio * s_h)
-    return (np.nan_to_num(height, nan=-np.inf) > thr) | missing
+    return (nan_to_num(height, nan=-np.inf) > thr) | missing
 
 
 def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, solid: np.ndarray,
@@ -362,7 +362,7 @@ def clear_object_at(u: int, v: int, px_labels: np.ndarray, clear: np.ndarray, ke
     whose body :func:`~.clear_body.grow_target` extends over the same kind of pixels. Of several such objects, the
     nearest to the pixel through the region."""
     is_object = np.isin(px_labels, kept)
-    table_level = np.isfinite(meas.height) & (ev.p_d <= 0.5) & (np.abs(np.nan_to_num(meas.height)) <= fit.h_thr)
+    table_level = np.isfinite(meas.height) & (ev.p_d <= 0.5) & (np.abs(nan_to_num(meas.height)) <= fit.h_thr)
     seed = np.zeros(px_labels.shape, dtype=bool)
     seed[v, u] = True
     region = _bounded_extension(seed, chromatic_extension(seed, (table_level | missing_px) & ~is_object, chroma_z,
@@ -535,7 +535,7 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
     if params.morph_kernel_px > 1:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (params.morph_kernel_px, params.morph_kernel_px))
         evidence = cv2.morphologyEx(evidence.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
-    h_ok = np.nan_to_num(height, nan=0.0)
+    h_ok = nan_to_num(height, nan=0.0)
     evidence &= (h_ok > -fit.band) & (h_ok < params.max_object_height_m) & all_finite(foot_xy)
     if params.roi_px is not None:
         u0, v0, u1, v1 = params.roi_px
@@ -550,7 +550,7 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
     rim = inlier & ~cv2.erode(inlier.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                               borderValue=0).astype(bool)
     inlier_xy = foot_xy[rim]
-    on_plane = inlier & (np.abs(np.nan_to_num(height, nan=np.inf)) <= fit.band)  # not moved by the see-through test
+    on_plane = inlier & (np.abs(nan_to_num(height, nan=np.inf)) <= fit.band)  # not moved by the see-through test
     ratio = _noise_ratio(height, meas.s_h, on_plane)
     raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
                                           np.where(ev.p_d > 0.5, height, np.nan), max(ratio, 1.0) * meas.s_h,

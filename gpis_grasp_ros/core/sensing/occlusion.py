@@ -20,7 +20,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SHADOW_HULL_SPAN_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, masked_rows, pixel_feet, vector_norm
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, masked_rows, nan_to_num, pixel_feet, vector_norm
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, draw_columns, prism_heights
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -68,7 +68,7 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     if not missing.any() or not above.any():
         return (out, tested) if return_tested else out
     k = max(3, 2 * int(round(0.5 * window_m / max(footprint_m, 1e-6))) + 1)
-    h_above = np.where(above, np.nan_to_num(height), 0.0).astype(np.float32)
+    h_above = np.where(above, nan_to_num(height), 0.0).astype(np.float32)
     top = cv2.dilate(h_above, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
     dist_px, nearest_at = nearest_pixel_lookup(above)
     n_reg, region = cv2.connectedComponents(missing.astype(np.uint8), connectivity=8)
@@ -132,17 +132,17 @@ def see_through_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray
     if not solid.any():
         return np.zeros(height.shape, dtype=bool), entry
     top = masked_rows(points, solid)
-    h = np.nan_to_num(height[solid])
+    h = nan_to_num(height[solid])
     foot = top - h[:, None] * table.n
     span = vector_norm(intrinsics.project(top) - intrinsics.project(foot))
-    n = np.clip(np.ceil(np.nan_to_num(span)).astype(np.int64) + 1, 1, max_samples)  # samples per column
+    n = np.clip(np.ceil(nan_to_num(span)).astype(np.int64) + 1, 1, max_samples)  # samples per column
     draw_columns(foot, h, n, table.n, False, camera_vector(intrinsics), entry, 0, 0, True)  # the point itself excluded
     # behind the columns of the whole 3 x 3 neighbourhood: a column rounded onto the pixel beside the
     # object's silhouette does not cover it
     behind_all = cv2.dilate(entry.astype(np.float32), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                             borderValue=np.inf).astype(np.float64)
     with np.errstate(invalid='ignore'):
-        tol = 3.0 * math.sqrt(2.0) * sensor.sigma(np.nan_to_num(depth, nan=0.0)) + slack_m
+        tol = 3.0 * math.sqrt(2.0) * sensor.sigma(nan_to_num(depth, nan=0.0)) + slack_m
         flagged = np.isfinite(depth) & np.isfinite(behind_all) & (depth - behind_all > tol)
     return flagged, entry
 
@@ -207,7 +207,7 @@ def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.nd
     origin = np.array([float(sensor.occluder_x_m), float(sensor.occluder_y_m), 0.0])
     if not origin.any() or not candidates.any() or not solid.any():
         return out
-    hts = np.nan_to_num(height[solid])
+    hts = nan_to_num(height[solid])
     hit_pts, hit = table.ray_intersection(intrinsics.rays())
     cand = candidates & hit
     if not cand.any():
@@ -215,7 +215,7 @@ def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.nd
     vs, us = np.nonzero(cand)
     p = hit_pts[vs, us]
     if min_hull_span_px is not None:
-        h_img = np.where(solid, np.nan_to_num(height), 0.0).astype(np.float32)
+        h_img = np.where(solid, nan_to_num(height), 0.0).astype(np.float32)
         k = max(3, 2 * int(round(0.5 * MISSING_HEIGHT_WINDOW_M / max(footprint_m, 1e-6))) + 1)
         local_top = cv2.dilate(h_img, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
         near = nearest_pixel_lookup(solid)[1]((vs, us))
@@ -271,7 +271,7 @@ def move_seen_through(frames: AveragedFrames, fit: TableFit, meas: Measurement, 
             frames = frames._replace(z_mean=np.where(through_px, entry, frames.z_mean))
             meas = measure(frames.z_mean, frames, fit.table, fit.rays, fit.ray_n, params.sensor)
             p_d = ev.p_d.copy()  # measured again where moved (the same per-pixel operations, on those pixels only)
-            p_d[through_px] = ndtr((np.nan_to_num(meas.height[through_px]) - fit.h_thr) / meas.s_h[through_px])
+            p_d[through_px] = ndtr((nan_to_num(meas.height[through_px]) - fit.h_thr) / meas.s_h[through_px])
             ev = ev._replace(p_d=p_d)
     return frames, meas, ev, through_px
 
@@ -303,7 +303,7 @@ def place_feet(frames: AveragedFrames, fit: TableFit, meas: Measurement, missing
     plane."""
     table, rays, valid, height = fit.table, fit.rays, frames.valid, meas.height
     normal = table.n
-    h_missing, tested = _missing_height(height, valid & (np.nan_to_num(height) > fit.h_thr), missing_px, rays, table,
+    h_missing, tested = _missing_height(height, valid & (nan_to_num(height) > fit.h_thr), missing_px, rays, table,
                                         intrinsics, footprint, return_tested=True)
     off_hull = tested & (h_missing <= 0)  # next to an object, but on the table: its ray meets no part of it
     off_hull |= shadow_px  # the sensor's shadow: table it did not measure

@@ -28,8 +28,45 @@ def norm_of(components: list[np.ndarray]) -> np.ndarray:
 
 
 def masked_rows(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """``x[mask]`` of an (H, W, k) array and an (H, W) mask: the same rows in the same order, gathered faster."""
-    return np.ascontiguousarray(x).reshape(-1, x.shape[-1])[np.flatnonzero(mask)]
+    """``x[mask]`` of an (H, W, k) array and an (H, W) mask: the same rows in the same order, gathered in one pass."""
+    rows = np.ascontiguousarray(x).reshape(-1, x.shape[-1])
+    flat = np.ascontiguousarray(mask, dtype=bool).ravel()
+    out = np.empty((int(np.count_nonzero(flat)), rows.shape[1]), dtype=x.dtype)
+    _masked_rows(rows, flat, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _masked_rows(rows, flat, out):
+    j = 0
+    for i in range(flat.size):
+        if flat[i]:
+            for c in range(rows.shape[1]):
+                out[j, c] = rows[i, c]
+            j += 1
+
+
+def nan_to_num(x: np.ndarray, nan: float = 0.0) -> np.ndarray:
+    """``np.nan_to_num(x, nan=nan)`` of a float array (NaN -> ``nan``, +-inf -> +-the largest float) in one pass."""
+    x = np.asarray(x)
+    if x.dtype not in (np.float64, np.float32):
+        return np.nan_to_num(x, nan=nan)
+    src = np.ascontiguousarray(x)
+    out = np.empty(src.shape, dtype=x.dtype)
+    big = np.finfo(x.dtype).max
+    _nan_to_num(src.reshape(-1), x.dtype.type(nan), big, -big, out.reshape(-1))
+    return out[()] if out.ndim == 0 else out
+
+
+@njit(cache=True, nogil=True)
+def _nan_to_num(x, nan, big, small, out):
+    for k in range(x.size):
+        v = x[k]
+        if math.isnan(v):
+            v = nan
+        elif math.isinf(v):
+            v = big if v > 0 else small
+        out[k] = v
 
 
 def all_finite(x: np.ndarray) -> np.ndarray:

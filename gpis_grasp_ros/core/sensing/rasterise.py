@@ -14,7 +14,7 @@ from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.clear_body import Target, _clear_body_cells, prism_alternatives, prism_footprint
 from gpis_grasp_ros.core.sensing.occlusion import Feet
 from gpis_grasp_ros.core.sensing.params import HIDDEN_SUBCELLS, MISSING_HEIGHT_WINDOW_M, SensingParams
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, max_tangent, vector_norm
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, max_tangent, nan_to_num, vector_norm
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, under_seen_surface
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -29,8 +29,8 @@ def _nearer_difference(xy: np.ndarray, axis: int) -> np.ndarray:
     back = np.pad(d, pad, constant_values=np.nan)
     pad[axis] = (0, 1)
     fwd = np.pad(d, pad, constant_values=np.nan)
-    n_back = np.nan_to_num(back[..., 0] ** 2 + back[..., 1] ** 2, nan=np.inf)
-    n_fwd = np.nan_to_num(fwd[..., 0] ** 2 + fwd[..., 1] ** 2, nan=np.inf)
+    n_back = nan_to_num(back[..., 0] ** 2 + back[..., 1] ** 2, nan=np.inf)
+    n_fwd = nan_to_num(fwd[..., 0] ** 2 + fwd[..., 1] ** 2, nan=np.inf)
     return np.where((n_back <= n_fwd)[..., None], back, fwd)
 
 
@@ -79,7 +79,7 @@ def _hidden_cells(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_xy:
     centres = geometry.cell_centers()
     u0, v0, in0 = intrinsics.pixel_index(geometry.to_sensor(centres, 0.0))
     covered = in0 & above[v0, u0]
-    h_seen = np.where(covered, np.nan_to_num(height[v0, u0]), 0.0)
+    h_seen = np.where(covered, nan_to_num(height[v0, u0]), 0.0)
     u1, v1, in1 = intrinsics.pixel_index(geometry.to_sensor(centres, h_seen))
     dist = vector_norm(foot_xy[v1, u1] - centres)
     under = in1 & np.isfinite(dist) & (dist <= tol_m)
@@ -232,7 +232,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     # table): the mean of their observed 8-neighbours, if at least 3, for as many cells as a footprint spans
     stats = [s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_contact, s_others]
     kernel3 = np.ones((3, 3), np.float32)
-    hidden = _hidden_cells(geometry, intrinsics, foot_xy, height, valid & (np.nan_to_num(height) > h_thr),
+    hidden = _hidden_cells(geometry, intrinsics, foot_xy, height, valid & (nan_to_num(height) > h_thr),
                            max(1.5 * res, 2.0 * footprint))  # behind an object: not interpolated
     # cells holding only the feet of holes on the table beside the target (off its visual hull) are not between
     # the feet of seen pixels: no measurement, not interpolated from the target's cells next to them
@@ -257,7 +257,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     if empty.any():
         rr, cc = np.nonzero(empty)
         ui, vi, inside = intrinsics.pixel_index(geometry.to_sensor(geometry.cell_centers()[rr, cc]))
-        sees_table = inside & valid[vi, ui] & (np.nan_to_num(height[vi, ui]) <= h_thr)
+        sees_table = inside & valid[vi, ui] & (nan_to_num(height[vi, ui]) <= h_thr)
         # a target hole placed on its ray above the table (_missing_height) is not at this cell: hidden, not a hole
         sees_target_hole = inside & miss_t[vi, ui] & (h_missing[vi, ui] <= 0)
         occluded[rr, cc] = inside & ~sees_table & ~sees_target_hole
@@ -274,8 +274,8 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     n_safe = np.maximum(n_inf, 1.0)
     # the part of a cell hidden behind an object is table, like a wholly occluded cell (_hidden_fraction)
     ray_cos = feet.ray_cos
-    hidden_part = _hidden_fraction(geometry, intrinsics, foot_xy, np.where(valid, np.nan_to_num(height), h_missing),
-                                   (valid & (np.nan_to_num(height) > h_thr)) | (h_missing > 0), footprint,
+    hidden_part = _hidden_fraction(geometry, intrinsics, foot_xy, np.where(valid, nan_to_num(height), h_missing),
+                                   (valid & (nan_to_num(height) > h_thr)) | (h_missing > 0), footprint,
                                    max_tangent(ray_cos),
                                    observed & (s_occ > 0))
     occupancy = np.clip(np.where(observed, s_occ / n_safe * (1.0 - hidden_part), 0.0), 0.0, 1.0)
@@ -284,7 +284,7 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     with np.errstate(invalid='ignore', divide='ignore'):
         rho_c = np.abs(s_pd - s_pc) / s_valid
         depth_var = np.where(s_valid > 0, s_var / s_valid, 0.0)
-    disagreement = np.where(observed & (s_valid > 0), np.clip(np.nan_to_num(rho_c), 0.0, 1.0), 0.0)
+    disagreement = np.where(observed & (s_valid > 0), np.clip(nan_to_num(rho_c), 0.0, 1.0), 0.0)
     # another object in contact: the line between them was inferred (a split), so the table the target's grid
     # has there is a hypothesis, trained with the disagreement variance of the share it holds, never unknown
     contact_frac = np.where(observed, np.clip(s_contact / n_safe, 0.0, 1.0), 0.0)

@@ -24,6 +24,7 @@ from scipy.special import ndtri
 
 from gpis_grasp_ros.core.sensing.morphology import _flood, _nearest_label
 from gpis_grasp_ros.core.sensing.params import CHROMA_CLEAR_FRACTION, FLAT_JUMP_M, STEP_FALSE_ALARM, STEP_SLOPE_DEG
+from gpis_grasp_ros.core.sensing.pixel_kernels import nan_to_num
 
 #: Sigmas of the noise of a height difference that one continuous surface exceeds with STEP_FALSE_ALARM (two-sided).
 STEP_SIGMAS = float(-ndtri(STEP_FALSE_ALARM / 2))
@@ -76,9 +77,9 @@ def surface_patches(labels: np.ndarray, cells: CellHeights, res: float) -> np.nd
     span at most :func:`step_limit` (one surface sampled; a cell across a wall, a flying pixel or a clear body's
     blend of surface and table seen through is not), joined through 4-neighbours of the same label whose heights
     differ by at most :func:`step_limit`."""
-    s = np.nan_to_num(cells.sigma)
-    h = np.nan_to_num(cells.mean)
-    seen = np.isfinite(cells.mean) & (labels > 0) & (np.nan_to_num(cells.spread, nan=np.inf) <= step_limit(s, s, res)) \
+    s = nan_to_num(cells.sigma)
+    h = nan_to_num(cells.mean)
+    seen = np.isfinite(cells.mean) & (labels > 0) & (nan_to_num(cells.spread, nan=np.inf) <= step_limit(s, s, res)) \
         & (h > step_limit(s, s, res))
     ny, nx = labels.shape
     idx = np.arange(ny * nx).reshape(ny, nx)
@@ -148,7 +149,7 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
     core[0] = False
     cores_of = np.bincount(patch_label[core], minlength=n)
     dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
-    s = np.nan_to_num(cells.sigma)
+    s = nan_to_num(cells.sigma)
     ground = np.isfinite(cells.mean) & (cells.mean <= step_limit(s, s, res))  # continuous with the table
     for lab in np.nonzero(cores_of >= 2)[0]:
         comp = labels == lab
@@ -157,7 +158,7 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
         rank[ids] = np.arange(1, ids.size + 1)
         parts = _join_parts(_flood(np.where(comp, rank[filled], 0).astype(np.int32), dist, comp), patch,
                             np.isfinite(cells.mean), ground, cells.blind, height[ids], span[ids] <= FLAT_JUMP_M,
-                            np.nan_to_num(cells.mean) + step_limit(s, s, res))
+                            nan_to_num(cells.mean) + step_limit(s, s, res))
         for part in np.unique(parts[comp & (parts > 0)])[1:]:
             out[comp & (parts == part)] = len(origin)
             origin.append(int(origin[lab]))

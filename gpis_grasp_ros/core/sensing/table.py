@@ -10,7 +10,7 @@ import numpy as np
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.params import SUPPORT_MIN_PX, SUPPORT_RADIUS_M, SensingParams
-from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, norm_of
+from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, nan_to_num, norm_of
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 
@@ -78,7 +78,7 @@ def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
     ray_n = np.abs(rays @ table.n)  # height error per unit depth error along the ray
     meas = measure(frames.z_mean, frames, table, rays, ray_n, params.sensor)
     band = np.maximum(params.plane_band_floor_m, params.plane_band_sigmas * params.sensor.sigma(meas.z_safe))
-    inlier = valid & (np.abs(np.nan_to_num(meas.height, nan=1.0)) <= band)
+    inlier = valid & (np.abs(nan_to_num(meas.height, nan=1.0)) <= band)
     if inlier.sum() < 20:
         raise ValueError(f'only {int(inlier.sum())} pixels lie on the table plane: cannot estimate the table '
                          '(check table_plane / table_depth_m, or the depth image)')

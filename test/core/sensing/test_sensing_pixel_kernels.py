@@ -9,6 +9,7 @@ from gpis_grasp_ros.core.sensing.pixel_kernels import (
     all_finite,
     masked_rows,
     max_tangent,
+    nan_to_num,
     norm_of,
     pixel_feet,
     vector_norm,
@@ -37,6 +38,32 @@ def test_vector_norm_and_all_finite_equal_numpy(dtype, k):
     assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
     mask = np.random.default_rng(k).random(x.shape[:2]) < 0.4
     assert np.array_equal(masked_rows(x, mask), x[mask], equal_nan=True)
+
+
+@pytest.mark.parametrize('dtype', [np.float64, np.float32])
+@pytest.mark.parametrize('nan', [0.0, 1.0, np.inf, -np.inf])
+def test_nan_to_num_equals_numpy(dtype, nan):
+    x = _awkward(np.random.default_rng(7), (53, 71), dtype)
+    x.ravel()[::37] = -np.inf
+    x.ravel()[::41] = -0.0
+    for arr in (x, x[:, ::2], x[5]):
+        got, want = nan_to_num(arr, nan=nan), np.nan_to_num(arr, nan=nan)
+        assert got.dtype == want.dtype and got.shape == want.shape
+        assert np.array_equal(got.view(np.uint8), np.ascontiguousarray(want).view(np.uint8))  # -0.0 kept too
+    assert nan_to_num(x[3, 4]) == np.nan_to_num(x[3, 4])
+    ints = np.arange(12).reshape(3, 4)
+    assert np.array_equal(nan_to_num(ints), ints)
+
+
+def test_masked_rows_of_other_dtypes_and_empty_masks():
+    rng = np.random.default_rng(8)
+    x = rng.integers(0, 255, (40, 30, 3)).astype(np.uint8)
+    mask = rng.random((40, 30)) < 0.3
+    got = masked_rows(x, mask)
+    assert got.dtype == np.uint8 and np.array_equal(got, x[mask])
+    assert masked_rows(x, np.zeros((40, 30), bool)).shape == (0, 3)
+    y = rng.standard_normal((40, 30, 3))[:, ::-1]  # not contiguous
+    assert np.array_equal(masked_rows(y, mask), y[mask])
 
 
 def test_pixel_feet_and_max_tangent_equal_the_array_code():
