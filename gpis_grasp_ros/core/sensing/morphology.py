@@ -20,10 +20,11 @@ def nearest_pixel_lookup(mask: np.ndarray):
     m = np.asarray(mask, dtype=bool)
     dist, nearest = cv2.distanceTransformWithLabels((~m).astype(np.uint8), cv2.DIST_L2, 5,
                                                     labelType=cv2.DIST_LABEL_PIXEL)
-    seen = np.argwhere(m)  # in the (row-major) order of OpenCV's pixel labels
+    seen = np.flatnonzero(m)  # in the (row-major) order of OpenCV's pixel labels
 
     def nearest_at(index) -> np.ndarray:
-        return seen[np.clip(nearest[index] - 1, 0, len(seen) - 1)]
+        flat = seen[np.clip(nearest[index] - 1, 0, len(seen) - 1)]
+        return np.stack(np.divmod(flat, m.shape[1]), axis=-1)  # np.argwhere's rows
 
     return dist, nearest_at
 

@@ -35,7 +35,7 @@ from gpis_grasp_ros.core.sensing.params import (
     SPLIT_NECK_M,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, nan_to_num, raster_cells
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, distinct_cells_per_label, nan_to_num, raster_cells
 from gpis_grasp_ros.core.sensing.steps import cell_heights, split_height_steps
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
@@ -335,8 +335,8 @@ def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, s
     ix, iy, ok = raster.cell(foot_xy)
     sel = solid & (px_labels > 0) & ok
     n_cells = raster.labels.size  # one key per (label, cell): the distinct cells of each label
-    keys = np.unique(px_labels[sel].astype(np.int64) * n_cells + (iy[sel] * raster.labels.shape[1] + ix[sel]))
-    solid_m2 = np.bincount(keys // n_cells, minlength=n_lab) * raster.res ** 2
+    solid_m2 = distinct_cells_per_label(px_labels[sel], iy[sel] * raster.labels.shape[1] + ix[sel], n_cells,
+                                        n_lab) * raster.res ** 2
     kept = np.nonzero((px_count >= params.min_object_area_px) & (area_m2 >= params.min_object_area_m2)
                       & (solid_m2 >= params.min_object_area_m2))[0]
     return kept[kept > 0]
@@ -345,7 +345,7 @@ def object_labels(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, s
 def clear_labels(px_labels: np.ndarray, kept: np.ndarray, p_d: np.ndarray) -> np.ndarray:
     """The clear objects among ``kept``: fewer than ``CHROMA_CLEAR_FRACTION`` of their pixels seen in depth."""
     n_lab = int(px_labels.max()) + 1
-    seen = np.bincount(px_labels.ravel(), weights=(p_d > 0.5).ravel(), minlength=n_lab)
+    seen = np.bincount(px_labels[p_d > 0.5], minlength=n_lab)  # the same counts as weights of 0 and 1
     size = np.bincount(px_labels.ravel(), minlength=n_lab)
     return kept[seen[kept] < CHROMA_CLEAR_FRACTION * size[kept]]
 

@@ -154,3 +154,75 @@ def _max_tangent(cos):
         if not math.isnan(t) and (math.isnan(best) or t > best):
             best = t
     return best
+
+
+def nearer_difference_area(xy: np.ndarray) -> np.ndarray:
+    """``|a_x b_y - a_y b_x|`` per pixel of the feet ``xy`` (H, W, 2): a and b their one-sided differences along the
+    image columns and rows towards the neighbour whose foot is nearer (``np.diff`` padded with NaN on either side,
+    the squared lengths ``nan_to_num(.., nan=inf)`` compared with ``<=``, the backward one kept on a tie)."""
+    src = np.ascontiguousarray(xy, dtype=np.float64)
+    out = np.empty(src.shape[:2])
+    _nearer_difference_area(src, np.finfo(np.float64).max, out)
+    return out
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _squared_or_inf(x, y, big):
+    s = x * x + y * y
+    if math.isnan(s):
+        return np.inf
+    if math.isinf(s):
+        return big
+    return s
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _nearer(x0, y0, x1, y1, big):
+    """The backward difference (x0, y0) or the forward one (x1, y1), whichever is nearer (backward on a tie)."""
+    if _squared_or_inf(x0, y0, big) <= _squared_or_inf(x1, y1, big):
+        return x0, y0
+    return x1, y1
+
+
+@njit(cache=True, nogil=True)
+def _nearer_difference_area(xy, big, out):
+    rows, cols = out.shape
+    for r in range(rows):
+        for c in range(cols):
+            bx = xy[r, c, 0] - xy[r, c - 1, 0] if c > 0 else np.nan
+            by = xy[r, c, 1] - xy[r, c - 1, 1] if c > 0 else np.nan
+            fx = xy[r, c + 1, 0] - xy[r, c, 0] if c < cols - 1 else np.nan
+            fy = xy[r, c + 1, 1] - xy[r, c, 1] if c < cols - 1 else np.nan
+            ax, ay = _nearer(bx, by, fx, fy, big)
+            bx = xy[r, c, 0] - xy[r - 1, c, 0] if r > 0 else np.nan
+            by = xy[r, c, 1] - xy[r - 1, c, 1] if r > 0 else np.nan
+            fx = xy[r + 1, c, 0] - xy[r, c, 0] if r < rows - 1 else np.nan
+            fy = xy[r + 1, c, 1] - xy[r, c, 1] if r < rows - 1 else np.nan
+            vx, vy = _nearer(bx, by, fx, fy, big)
+            out[r, c] = abs(ax * vy - ay * vx)
+
+
+def distinct_cells_per_label(labels: np.ndarray, cells: np.ndarray, n_cells: int, n_labels: int) -> np.ndarray:
+    """Per label, the number of distinct ``cells`` (0 .. n_cells - 1) its entries hold: ``np.bincount`` of the
+    labels of ``np.unique(labels * n_cells + cells)`` (minlength ``n_labels``), labels and cells non-negative."""
+    labels = np.ascontiguousarray(labels, dtype=np.int64).ravel()
+    cells = np.ascontiguousarray(cells, dtype=np.int64).ravel()
+    size = max(n_labels, int(labels.max()) + 1 if labels.size else 0)
+    count = np.zeros(size, np.int64)
+    if not _distinct_cells(labels, cells, np.zeros(n_cells, np.int64), count):  # a cell shared by two labels
+        keys = np.unique(labels * n_cells + cells)
+        count = np.bincount(keys // n_cells, minlength=n_labels)
+    return count
+
+
+@njit(cache=True, nogil=True)
+def _distinct_cells(labels, cells, owner, count):
+    """Counts into ``count`` while every cell holds one label (``owner``: label + 1 of each cell); False if not."""
+    for k in range(labels.size):
+        c = cells[k]
+        if owner[c] == 0:
+            owner[c] = labels[k] + 1
+            count[labels[k]] += 1
+        elif owner[c] != labels[k] + 1:
+            return False
+    return True

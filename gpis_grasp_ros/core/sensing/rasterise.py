@@ -14,24 +14,16 @@ from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.clear_body import Target, _clear_body_cells, prism_alternatives, prism_footprint
 from gpis_grasp_ros.core.sensing.occlusion import Feet
 from gpis_grasp_ros.core.sensing.params import HIDDEN_SUBCELLS, MISSING_HEIGHT_WINDOW_M, SensingParams
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, max_tangent, nan_to_num, vector_norm
+from gpis_grasp_ros.core.sensing.pixel_kernels import (
+    all_finite,
+    max_tangent,
+    nan_to_num,
+    nearer_difference_area,
+    vector_norm,
+)
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, under_seen_surface
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
-
-
-def _nearer_difference(xy: np.ndarray, axis: int) -> np.ndarray:
-    """Per pixel, the one-sided difference of the feet ``xy`` (H, W, 2) along image ``axis`` towards the neighbour
-    whose foot is nearer (the other where one is missing; NaN without either)."""
-    d = np.diff(xy, axis=axis)
-    pad = [(0, 0)] * 3
-    pad[axis] = (1, 0)
-    back = np.pad(d, pad, constant_values=np.nan)
-    pad[axis] = (0, 1)
-    fwd = np.pad(d, pad, constant_values=np.nan)
-    n_back = nan_to_num(back[..., 0] ** 2 + back[..., 1] ** 2, nan=np.inf)
-    n_fwd = nan_to_num(fwd[..., 0] ** 2 + fwd[..., 1] ** 2, nan=np.inf)
-    return np.where((n_back <= n_fwd)[..., None], back, fwd)
 
 
 def _table_area_weights(foot_xy: np.ndarray, ray_xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -49,10 +41,6 @@ def _table_area_weights(foot_xy: np.ndarray, ray_xy: np.ndarray, valid: np.ndarr
     the feet on both sides of the step (the gap between the wall's base and the first table foot would be
     counted as object). ``valid``: pixels whose foot is known (seen, or a no-return pixel placed on its ray:
     a specular wall placed on the wall covers no table either); the others take the nominal weight 1."""
-    def area(xy: np.ndarray) -> np.ndarray:
-        a, b = _nearer_difference(xy, 1), _nearer_difference(xy, 0)
-        return np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
-
     def plane_area(xy: np.ndarray) -> np.ndarray:  # the table's own feet: smooth, central differences
         xu, yu = np.gradient(xy[..., 0], axis=1), np.gradient(xy[..., 1], axis=1)
         xv, yv = np.gradient(xy[..., 0], axis=0), np.gradient(xy[..., 1], axis=0)
@@ -63,7 +51,7 @@ def _table_area_weights(foot_xy: np.ndarray, ray_xy: np.ndarray, valid: np.ndarr
     feet = np.where(valid[..., None], foot_xy, ray_xy).astype(np.float32)
     feet = np.stack([cv2.medianBlur(np.ascontiguousarray(feet[..., i]), 3) for i in range(2)], axis=-1)
     with np.errstate(invalid='ignore', divide='ignore'):
-        ratio = np.where(valid, area(feet.astype(np.float64)), np.nan) / plane_area(ray_xy)
+        ratio = np.where(valid, nearer_difference_area(feet.astype(np.float64)), np.nan) / plane_area(ray_xy)
     return np.clip(np.where(np.isfinite(ratio), ratio, 1.0), 0.0, 4.0)
 
 

@@ -55,12 +55,12 @@ def _table_frame(points: np.ndarray, valid: np.ndarray, params: SensingParams) -
 
 
 def measure(z: np.ndarray, frames: AveragedFrames, table: TableFrame, rays: np.ndarray, ray_n: np.ndarray,
-            sensor: SensorModel) -> Measurement:
+            sensor: SensorModel, points: np.ndarray | None = None) -> Measurement:
     """Camera points, heights above the plane (NaN where no return), depths with the plane's offset where
     none, their averaged variance and the height noise s_h of depths ``z`` (m) - for the frames' returns,
-    and again after the see-through test moved some."""
+    and again after the see-through test moved some. ``points``: the camera points of ``z``, when known."""
     valid = frames.valid
-    pts = rays * np.where(valid, z, np.nan)[..., None]
+    pts = rays * np.where(valid, z, np.nan)[..., None] if points is None else points
     z_ok = np.where(valid, z, table.offset_m)
     var = sensor.variance(z_ok) / np.maximum(frames.count_eff, 1.0)
     return Measurement(pts, np.where(valid, pts @ table.n + table.offset_m, np.nan), z_ok, var,
@@ -76,7 +76,7 @@ def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
     points = rays * np.where(valid, frames.z_mean, np.nan)[..., None]
     table = _table_frame(points, valid, params)
     ray_n = np.abs(rays @ table.n)  # height error per unit depth error along the ray
-    meas = measure(frames.z_mean, frames, table, rays, ray_n, params.sensor)
+    meas = measure(frames.z_mean, frames, table, rays, ray_n, params.sensor, points)
     band = np.maximum(params.plane_band_floor_m, params.plane_band_sigmas * params.sensor.sigma(meas.z_safe))
     inlier = valid & (np.abs(nan_to_num(meas.height, nan=1.0)) <= band)
     if inlier.sum() < 20:

@@ -7,9 +7,11 @@ import pytest
 
 from gpis_grasp_ros.core.sensing.pixel_kernels import (
     all_finite,
+    distinct_cells_per_label,
     masked_rows,
     max_tangent,
     nan_to_num,
+    nearer_difference_area,
     norm_of,
     pixel_feet,
     vector_norm,
@@ -64,6 +66,47 @@ def test_masked_rows_of_other_dtypes_and_empty_masks():
     assert masked_rows(x, np.zeros((40, 30), bool)).shape == (0, 3)
     y = rng.standard_normal((40, 30, 3))[:, ::-1]  # not contiguous
     assert np.array_equal(masked_rows(y, mask), y[mask])
+
+
+def _nearer_difference(xy: np.ndarray, axis: int) -> np.ndarray:
+    """The array code of the nearer one-sided differences (rasterise's table area weights)."""
+    d = np.diff(xy, axis=axis)
+    pad = [(0, 0)] * 3
+    pad[axis] = (1, 0)
+    back = np.pad(d, pad, constant_values=np.nan)
+    pad[axis] = (0, 1)
+    fwd = np.pad(d, pad, constant_values=np.nan)
+    n_back = np.nan_to_num(back[..., 0] ** 2 + back[..., 1] ** 2, nan=np.inf)
+    n_fwd = np.nan_to_num(fwd[..., 0] ** 2 + fwd[..., 1] ** 2, nan=np.inf)
+    return np.where((n_back <= n_fwd)[..., None], back, fwd)
+
+
+def test_nearer_difference_area_equals_the_array_code():
+    rng = np.random.default_rng(9)
+    xy = np.stack(np.meshgrid(np.linspace(-0.2, 0.2, 83), np.linspace(0.1, 0.5, 61)), axis=-1)
+    xy = (xy + rng.normal(0.0, 1e-3, xy.shape)).astype(np.float32).astype(np.float64)
+    xy[rng.random(xy.shape[:2]) < 0.05] = np.nan
+    xy[rng.random(xy.shape[:2]) < 0.01, 1] = np.nan
+    xy[rng.random(xy.shape[:2]) < 0.01, 0] = 1e200  # squared lengths that overflow
+    xy[5, 7] = xy[5, 6] + (xy[5, 8] - xy[5, 7])  # ties
+    with np.errstate(invalid='ignore', over='ignore'):
+        a, b = _nearer_difference(xy, 1), _nearer_difference(xy, 0)
+        want = np.abs(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
+        got = nearer_difference_area(xy)
+    assert np.array_equal(got, want, equal_nan=True)
+
+
+def test_distinct_cells_per_label_equals_unique():
+    rng = np.random.default_rng(10)
+    n_cells, n_labels = 500, 9
+    cells = rng.integers(0, n_cells, 3000)
+    owner = rng.integers(1, n_labels - 2, n_cells)
+    for labels in (owner[cells], rng.integers(1, n_labels, 3000)):  # one label per cell, and shared cells
+        want = np.bincount(np.unique(labels * n_cells + cells) // n_cells, minlength=n_labels)
+        got = distinct_cells_per_label(labels, cells, n_cells, n_labels)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+    assert np.array_equal(distinct_cells_per_label(np.zeros(0, int), np.zeros(0, int), n_cells, n_labels),
+                          np.zeros(n_labels, int))
 
 
 def test_pixel_feet_and_max_tangent_equal_the_array_code():
