@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+from numba import njit
 from scipy.special import ndtr
 
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames
@@ -31,8 +33,31 @@ def shadow_line_distance(rgb: np.ndarray, table_rgb: np.ndarray) -> tuple[np.nda
     """
     t = np.asarray(table_rgb, dtype=np.float64)
     ratio = (rgb @ t) / max(float(t @ t), 1e-9)
-    alpha = np.clip(ratio, 0.0, 1.0)
-    return norm_of([rgb[..., k] - alpha * t[k] for k in range(3)]), ratio  # |rgb - alpha t|
+    if rgb.dtype != np.float64 or ratio.dtype != np.float64:
+        alpha = np.clip(ratio, 0.0, 1.0)
+        return norm_of([rgb[..., k] - alpha * t[k] for k in range(3)]), ratio  # |rgb - alpha t|
+    dist = np.empty(ratio.shape)
+    _shadow_line_distance(np.ascontiguousarray(rgb).reshape(-1, 3), np.ascontiguousarray(ratio).reshape(-1), t,
+                          dist.reshape(-1))
+    return dist, ratio
+
+
+@njit(cache=True, nogil=True)
+def _shadow_line_distance(rgb, ratio, t, out):
+    """|rgb - alpha t| with alpha = np.clip(ratio, 0, 1), per colour, summed as ``norm_of``."""
+    for k in range(ratio.size):
+        a = ratio[k]
+        if a < 0.0:
+            a = 0.0
+        elif a > 1.0:
+            a = 1.0
+        c0 = rgb[k, 0] - a * t[0]
+        c1 = rgb[k, 1] - a * t[1]
+        c2 = rgb[k, 2] - a * t[2]
+        total = c0 * c0
+        total = total + c1 * c1
+        total = total + c2 * c2
+        out[k] = math.sqrt(total)
 
 
 @dataclass(frozen=True)
@@ -57,7 +82,7 @@ def _colour_model(rgb: np.ndarray, train: np.ndarray, params: SensingParams) -> 
     the training pixels' shadow-line distances, ramp max(2, MAD); colours darker than the table's
     own texture (ratio below median - max(0.1, ``color_mad_factor`` MAD)) are "darker than the table".
     Robust statistics, because the plane's inliers include the table seen *through* clear objects."""
-    samples = rgb[train]
+    samples = masked_rows(rgb, train) if rgb.ndim == 3 else rgb[train]
     if samples.shape[0] > 50000:
         samples = samples[np.random.default_rng(0).choice(samples.shape[0], 50000, replace=False)]
     if params.table_color is not None:
@@ -112,20 +137,78 @@ def chromaticity_distance(rgb: np.ndarray, train: np.ndarray, smooth_px: float =
     img = np.asarray(rgb, dtype=np.float32)
     if smooth_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), smooth_px, borderType=cv2.BORDER_REPLICATE)
-    total = img[..., 0] + img[..., 1] + img[..., 2]  # img.sum(axis=-1): left to right
-    chroma = img / np.maximum(total, 1e-3)[..., None]
-    samples = masked_rows(chroma, train)
-    if samples.shape[0] < 20:
-        return np.zeros(total.shape), 0.0, 1.0
-    c_table = np.median(samples, axis=0)
-    dist = norm_of([chroma[..., k] - c_table[k] for k in range(3)])  # |chroma - c_table|
-    med = float(np.median(dist[train]))
-    scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(np.median(np.abs(dist[train] - med))))
+    img = np.ascontiguousarray(img).reshape(-1, 3)
+    train = np.ascontiguousarray(train, dtype=bool).reshape(-1)
+    shape = np.shape(rgb)[:2]
+    n = int(np.count_nonzero(train))
+    if n < 20:
+        return np.zeros(shape), 0.0, 1.0
+    # the training pixels' chromaticities and brightness (total), then their distances from the median one
+    samples = np.empty((4, n), np.float32)
+    _chroma_samples(img, train, samples)
+    c_table = np.array([np.median(samples[k]) for k in range(3)], dtype=np.float32)
+    dist = np.empty(img.shape[0], np.float32)
+    dist_train = np.empty(n, np.float32)
+    _chroma_distance(img, train, c_table, dist, dist_train)
+    med = float(np.median(dist_train))
+    scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(np.median(np.abs(dist_train - med))))
     # the chromaticity of a darker pixel is noisier (shot noise over less light): its spread is the table's
     # times sqrt(table brightness / pixel brightness), so a shadow is not flagged by its noise
-    spread = scale * np.sqrt(np.maximum(1.0, float(np.median(total[train])) / np.maximum(total, 1e-3)))
-    z = np.where(total / 3.0 >= dark, (dist - med) / spread, 0.0)
-    return z.astype(np.float64), med, scale
+    z = np.empty(img.shape[0])
+    _chroma_z(img, dist, np.float32(float(np.median(samples[3]))), np.float32(scale), np.float32(med),
+              np.float32(dark), z)
+    return z.reshape(shape), med, scale
+
+
+# The chromaticity's per-pixel passes, in float32 as the array code (total = (r + g) + b, chroma = colour /
+# np.maximum(total, 1e-3), |chroma - c_table| summed as ``norm_of``, Python floats taken as float32).
+@njit(cache=True, nogil=True, inline='always')
+def _brightness(img, k):
+    total = img[k, 0] + img[k, 1]
+    total = total + img[k, 2]
+    return total, (total if not total < np.float32(1e-3) else np.float32(1e-3))  # np.maximum: NaN kept
+
+
+@njit(cache=True, nogil=True)
+def _chroma_samples(img, train, out):
+    j = 0
+    for k in range(train.size):
+        if train[k]:
+            total, den = _brightness(img, k)
+            for c in range(3):
+                out[c, j] = img[k, c] / den
+            out[3, j] = total
+            j += 1
+
+
+@njit(cache=True, nogil=True)
+def _chroma_distance(img, train, c_table, dist, dist_train):
+    j = 0
+    for k in range(train.size):
+        den = _brightness(img, k)[1]
+        d0 = img[k, 0] / den - c_table[0]
+        d1 = img[k, 1] / den - c_table[1]
+        d2 = img[k, 2] / den - c_table[2]
+        total = d0 * d0
+        total = total + d1 * d1
+        total = total + d2 * d2
+        dist[k] = np.sqrt(total)
+        if train[k]:
+            dist_train[j] = dist[k]
+            j += 1
+
+
+@njit(cache=True, nogil=True)
+def _chroma_z(img, dist, table_total, scale, med, dark, z):
+    """z = (dist - med) / spread where total / 3 >= dark (0 elsewhere), spread = scale sqrt(max(1, table_total /
+    max(total, 1e-3)))."""
+    for k in range(dist.size):
+        total, den = _brightness(img, k)
+        ratio = table_total / den
+        if not (ratio >= np.float32(1.0) or ratio != ratio):  # np.maximum(1.0, ratio): NaN kept
+            ratio = np.float32(1.0)
+        spread = scale * np.sqrt(ratio)
+        z[k] = (dist[k] - med) / spread if total / np.float32(3.0) >= dark else 0.0
 
 
 class Evidence(NamedTuple):

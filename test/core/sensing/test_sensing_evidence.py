@@ -1,12 +1,15 @@
-"""Evidence stage (core.sensing.evidence): the shadow line and the inverse-variance combination."""
+"""Evidence stage (core.sensing.evidence): the shadow line, the chromaticity distance and the inverse-variance
+combination."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from gpis_grasp_ros.core.sensing import SensingParams, shadow_line_distance
-from gpis_grasp_ros.core.sensing.evidence import Evidence, combine
+from gpis_grasp_ros.core.sensing.evidence import Evidence, chromaticity_distance, combine
+from gpis_grasp_ros.core.sensing.params import CHROMA_MIN_SIGMA
 
 
 def test_shadow_line_distance_is_analytic():
@@ -33,3 +36,46 @@ def test_combination_trusts_depth_and_makes_missing_object():
     assert occ[1] < 0.5 and occ[2] == pytest.approx(0.5)
     assert occ[3] == 1.0 and rho[3] == 0.0  # missing = object, no disagreement
     assert np.allclose(rho[:3], np.abs(p_d - p_c)[:3])
+
+
+def _chromaticity_reference(rgb, train, smooth_px=1.5, dark=20.0):
+    """The array code of :func:`chromaticity_distance`."""
+    img = np.asarray(rgb, dtype=np.float32)
+    if smooth_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), smooth_px, borderType=cv2.BORDER_REPLICATE)
+    total = img[..., 0] + img[..., 1] + img[..., 2]
+    chroma = img / np.maximum(total, 1e-3)[..., None]
+    samples = chroma[train]
+    if samples.shape[0] < 20:
+        return np.zeros(total.shape), 0.0, 1.0
+    c_table = np.median(samples, axis=0)
+    dist = np.linalg.norm(chroma - c_table, axis=-1)
+    med = float(np.median(dist[train]))
+    scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(np.median(np.abs(dist[train] - med))))
+    spread = scale * np.sqrt(np.maximum(1.0, float(np.median(total[train])) / np.maximum(total, 1e-3)))
+    z = np.where(total / 3.0 >= dark, (dist - med) / spread, 0.0)
+    return z.astype(np.float64), med, scale
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_chromaticity_distance_and_shadow_line_equal_the_array_code(seed):
+    rng = np.random.default_rng(seed)
+    h, w = 67 + seed, 91
+    img = rng.uniform(0.0, 255.0, (h, w, 3))
+    img[rng.random((h, w)) < 0.2] = rng.uniform(0.0, 30.0, 3)  # dark pixels
+    img[rng.random((h, w)) < 0.05] = 0.0  # black: brightness below the floor
+    img[: h // 2, : w // 2] = [120.0, 100.0, 90.0] + rng.normal(0.0, 3.0, (h // 2, w // 2, 3))  # a table
+    train = rng.random((h, w)) < 0.5
+    for smooth, dark in ((1.5, 20.0), (0.0, 20.1), (2.0, 7.3)):
+        got, want = chromaticity_distance(img, train, smooth, dark), _chromaticity_reference(img, train, smooth, dark)
+        assert got[1:] == want[1:] and got[0].dtype == want[0].dtype
+        assert np.array_equal(got[0], want[0], equal_nan=True)
+    small = np.zeros((h, w), bool)
+    small[0, :10] = True
+    assert np.array_equal(chromaticity_distance(img, small)[0], np.zeros((h, w)))
+    t = np.median(img[train], axis=0)
+    dist, ratio = shadow_line_distance(img, t)
+    want_ratio = (img @ t) / float(t @ t)
+    alpha = np.clip(want_ratio, 0.0, 1.0)
+    assert np.array_equal(ratio, want_ratio)
+    assert np.array_equal(dist, np.linalg.norm(img - alpha[..., None] * t, axis=-1))
