@@ -185,34 +185,39 @@ def _temporal_moments(flat: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np
     all of them, in pixel order: what ``values.var(axis=0, ddof=1)`` and ``values.mean(axis=0)`` give for
     ``values = flat[idx][:, ok]`` (the same sums in the same order: frame after frame)."""
     n = idx.size
-    ok = np.ones(flat.shape[1], dtype=np.bool_)
+    npx = flat.shape[1]
+    # frame after frame, each frame's row read in order (every pixel summed; those without a return dropped after)
+    ok = np.ones(npx, dtype=np.bool_)
+    total = np.zeros(npx)
+    for j in range(n):
+        row = flat[idx[j]]
+        for p in range(npx):
+            x = row[p]
+            ok[p] &= (x > 0.0) & (x < np.inf)  # finite and > 0
+            total[p] = x if j == 0 else total[p] + x
     count = 0
-    for p in range(flat.shape[1]):
-        for i in idx:
-            x = flat[i, p]
-            if not (np.isfinite(x) and x > 0.0):
-                ok[p] = False
-                break
-        if ok[p]:
-            count += 1
+    for p in range(npx):
+        count += ok[p]
+    mean_all = total / n
+    q = np.zeros(npx)
+    for j in range(n):
+        row = flat[idx[j]]
+        if j == 0:
+            for p in range(npx):
+                d = row[p] - mean_all[p]
+                q[p] = d * d
+        else:
+            for p in range(npx):
+                d = row[p] - mean_all[p]
+                q[p] += d * d
     s2 = np.empty(count)
     mean = np.empty(count)
     k = 0
-    for p in range(flat.shape[1]):
-        if not ok[p]:
-            continue
-        s = flat[idx[0], p]
-        for j in range(1, n):
-            s += flat[idx[j], p]
-        m = s / n
-        d = flat[idx[0], p] - m
-        q = d * d
-        for j in range(1, n):
-            d = flat[idx[j], p] - m
-            q += d * d
-        s2[k] = q / (n - 1)
-        mean[k] = m
-        k += 1
+    for p in range(npx):
+        if ok[p]:
+            s2[k] = q[p] / (n - 1)
+            mean[k] = mean_all[p]
+            k += 1
     return s2, mean
 
 
@@ -240,5 +245,6 @@ def effective_frame_count(depth_frames: np.ndarray, model: SensorModel, min_pixe
     model_var = model.variance(mean)
     # the median of a sample variance of n Gaussian values is chi2_{n-1} median / (n - 1) of the variance
     unbias = float(chi2.ppf(0.5, n - 1) / (n - 1))
-    ratio = float(np.median(s2) / unbias / max(float(np.median(model_var)), 1e-18))
+    ratio = float(np.median(s2, overwrite_input=True) / unbias
+                  / max(float(np.median(model_var, overwrite_input=True)), 1e-18))
     return float(1.0 + (n - 1) * min(1.0, ratio))

@@ -164,11 +164,11 @@ def _depth_sums(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     count = np.zeros(depth.shape[1], dtype=np.int64)
     total = np.zeros(depth.shape[1])
     for i in range(depth.shape[0]):
-        for p in range(depth.shape[1]):
+        for p in range(depth.shape[1]):  # without branches: adding 0.0 to a sum of positive returns keeps it
             x = np.float64(depth[i, p])
-            if np.isfinite(x) and x > 0.0:
-                count[p] += 1
-                total[p] += x
+            ok = (x > 0.0) & (x < np.inf)  # finite and > 0
+            count[p] += ok
+            total[p] += x if ok else 0.0
     return count, total
 
 

@@ -103,3 +103,26 @@ def test_average_frames_refuses_frames_without_a_return():
     depth = np.zeros((2, 4, 4))
     with pytest.raises(ValueError, match='no valid return'):
         average_frames(np.zeros((2, 4, 4, 3), np.uint8), depth, SensingParams())
+
+
+def test_temporal_moments_sum_frame_after_frame():
+    from gpis_grasp_ros.core.noise_model import _temporal_moments
+
+    rng = np.random.default_rng(4)
+    flat = rng.normal(0.8, 0.01, (6, 5000)) * np.exp(rng.uniform(-20, 20, 5000))
+    flat[rng.random(flat.shape) < 0.02] = np.nan
+    flat[rng.random(flat.shape) < 0.01] = -1.0
+    flat[rng.random(flat.shape) < 0.01] = np.inf
+    idx = np.array([0, 2, 3, 5])
+    rows = flat[idx]
+    ok = (np.isfinite(rows) & (rows > 0)).all(axis=0)
+    s = rows[0].copy()
+    with np.errstate(invalid='ignore'):  # inf - inf at the pixels dropped
+        for j in range(1, idx.size):
+            s = s + rows[j]
+        m = s / idx.size
+        q = (rows[0] - m) ** 2
+        for j in range(1, idx.size):
+            q = q + (rows[j] - m) ** 2
+    s2, mean = _temporal_moments(flat, idx)
+    assert np.array_equal(s2, q[ok] / (idx.size - 1)) and np.array_equal(mean, m[ok])
