@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.noise_model import SensorModel
@@ -99,8 +100,13 @@ class TableFrame:
         rays = np.asarray(rays, dtype=np.float64)
         denom = rays @ self.n
         hit = denom < -1e-9
-        t = np.where(hit, -self.offset_m / np.where(hit, denom, -1.0), np.nan)
-        return rays * t[..., None], hit
+        if rays.ndim < 2:
+            t = np.where(hit, -self.offset_m / np.where(hit, denom, -1.0), np.nan)
+            return rays * t[..., None], hit
+        points = np.empty(rays.shape)
+        _ray_points(np.ascontiguousarray(rays).reshape(-1, 3), np.ascontiguousarray(denom).reshape(-1),
+                    np.ascontiguousarray(hit).reshape(-1), -self.offset_m, points.reshape(-1, 3))
+        return points, hit
 
     def grid(self, origin_x: float, origin_y: float, resolution: float, width: int, height: int,
              frame_id: str = '') -> GridGeometry:
@@ -111,6 +117,15 @@ class TableFrame:
     def plane_coefficients(self) -> tuple[float, float, float, float]:
         """(a, b, c, d) with a x + b y + c z + d = 0, (a, b, c) = n."""
         return (*self.normal, self.offset_m)
+
+
+@njit(cache=True, nogil=True)
+def _ray_points(rays, denom, hit, neg_offset, out):
+    """``rays * t`` with ``t = -offset / denom`` where the ray hits the plane, NaN where not (one pass)."""
+    for k in range(denom.size):
+        t = neg_offset / denom[k] if hit[k] else np.nan
+        for c in range(3):
+            out[k, c] = rays[k, c] * t
 
 
 def _plane_from_three(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -281,3 +281,16 @@ def test_minimum_width_of_rotated_rectangle():
         pts = np.vstack([pts, np.array([[-a, -b], [a, -b], [a, b], [-a, b]]) / 2])
         rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
         assert minimum_width(pts @ rot.T) == pytest.approx(min(a, b), rel=1e-4)
+
+
+def test_ray_intersection_equals_the_array_code():
+    rng = np.random.default_rng(6)
+    table = TableFrame.from_plane(0.1, -0.5, -0.86, 0.7)
+    rays = np.stack([rng.uniform(-0.8, 0.8, (40, 50)), rng.uniform(-0.6, 0.6, (40, 50)), np.ones((40, 50))], axis=-1)
+    rays[0, :5] = [0.0, 10.0, 0.0]  # parallel to the plane or away from it
+    denom = rays @ table.n
+    hit = denom < -1e-9
+    want = rays * np.where(hit, -table.offset_m / np.where(hit, denom, -1.0), np.nan)[..., None]
+    for r, w, h in ((rays, want, hit), (rays[:, ::3], want[:, ::3], hit[:, ::3]), (rays[3, 4], want[3, 4], hit[3, 4])):
+        got, got_hit = table.ray_intersection(r)
+        assert np.array_equal(got, w, equal_nan=True) and np.array_equal(got_hit, h)
