@@ -29,7 +29,7 @@ from gpis_grasp_ros.core.sensing.params import (
     PRISM_STEP_M,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, masked_rows, nan_to_num
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, nan_to_num
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, under_prism
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -109,7 +109,10 @@ def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: Cam
     box lower by a factor cos a + sin a (a: the rays' angle from the vertical across its axis; 1.4 at 45-52
     deg), so the lying prior puts it that much too low and its footprint H tan(a) / 2 too far from the
     camera. One view of a clear body does not tell the two apart."""
-    hit, ok = table.ray_intersection(masked_rows(intrinsics.rays(), np.asarray(silhouette, dtype=bool)))
+    vs, us = np.nonzero(silhouette)  # the silhouette's rays (CameraIntrinsics.rays at its pixels)
+    rays = np.stack([(us.astype(np.float64) - intrinsics.cx) / intrinsics.fx,
+                     (vs.astype(np.float64) - intrinsics.cy) / intrinsics.fy, np.ones(us.size)], axis=-1)
+    hit, ok = table.ray_intersection(rays)
     if ok.sum() < 3:
         return 0.0, table.to_table(hit[ok])[0]
     xy = table.to_table(hit[ok])[0]

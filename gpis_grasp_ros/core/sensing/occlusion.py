@@ -177,7 +177,8 @@ def column_zbuffer(top: np.ndarray, h: np.ndarray, table: TableFrame, intrinsics
 def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.ndarray, candidates: np.ndarray,
                             table: TableFrame, intrinsics: CameraIntrinsics, sensor: SensorModel,
                             footprint_m: float, slack_m: float = 0.005,
-                            min_hull_span_px: float | None = SHADOW_HULL_SPAN_PX) -> np.ndarray:
+                            min_hull_span_px: float | None = SHADOW_HULL_SPAN_PX,
+                            rays: np.ndarray | None = None) -> np.ndarray:
     """No-return pixels that look at table the sensor's second viewpoint cannot see: its shadow.
 
     A structured-light sensor needs its projector to light a point, an active-stereo sensor its second imager
@@ -201,14 +202,14 @@ def occlusion_shadow_pixels(points: np.ndarray, height: np.ndarray, solid: np.nd
     onto one or two pixels, a shadow band next to an object passes the prism test on its own pixels, and the
     object was grown by the band (a 3 cm box under a top-down Carmine: 18 % too much area).
 
-    Returns (H, W) bool. Nothing when the sensor has no second viewpoint (``occluder_x_m`` = ``occluder_y_m`` = 0)
-    or nothing is seen above the table."""
+    ``rays``: ``intrinsics.rays()``, when known. Returns (H, W) bool. Nothing when the sensor has no second
+    viewpoint (``occluder_x_m`` = ``occluder_y_m`` = 0) or nothing is seen above the table."""
     out = np.zeros(candidates.shape, dtype=bool)
     origin = np.array([float(sensor.occluder_x_m), float(sensor.occluder_y_m), 0.0])
     if not origin.any() or not candidates.any() or not solid.any():
         return out
     hts = nan_to_num(height[solid])
-    hit_pts, hit = table.ray_intersection(intrinsics.rays())
+    hit_pts, hit = table.ray_intersection(intrinsics.rays() if rays is None else rays)
     cand = candidates & hit
     if not cand.any():
         return out
@@ -283,7 +284,8 @@ def sensor_shadow(frames: AveragedFrames, fit: TableFit, meas: Measurement, ev: 
     if not params.shadow_test:
         return np.zeros(frames.valid.shape, dtype=bool)
     return occlusion_shadow_pixels(meas.points, meas.height, frames.valid & (ev.p_d > 0.5),
-                                   frames.missing & (ev.p_c <= 0.5), fit.table, intrinsics, params.sensor, footprint)
+                                   frames.missing & (ev.p_c <= 0.5), fit.table, intrinsics, params.sensor, footprint,
+                                   rays=fit.rays)
 
 
 class Feet(NamedTuple):

@@ -79,8 +79,8 @@ def surface_patches(labels: np.ndarray, cells: CellHeights, res: float) -> np.nd
     differ by at most :func:`step_limit`."""
     s = nan_to_num(cells.sigma)
     h = nan_to_num(cells.mean)
-    seen = np.isfinite(cells.mean) & (labels > 0) & (nan_to_num(cells.spread, nan=np.inf) <= step_limit(s, s, res)) \
-        & (h > step_limit(s, s, res))
+    limit = step_limit(s, s, res)
+    seen = np.isfinite(cells.mean) & (labels > 0) & (nan_to_num(cells.spread, nan=np.inf) <= limit) & (h > limit)
     ny, nx = labels.shape
     idx = np.arange(ny * nx).reshape(ny, nx)
     rows, cols = [], []
@@ -150,7 +150,8 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
     cores_of = np.bincount(patch_label[core], minlength=n)
     dist = cv2.distanceTransform(np.pad((labels > 0).astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
     s = nan_to_num(cells.sigma)
-    ground = np.isfinite(cells.mean) & (cells.mean <= step_limit(s, s, res))  # continuous with the table
+    limit = step_limit(s, s, res)
+    ground = np.isfinite(cells.mean) & (cells.mean <= limit)  # continuous with the table
     for lab in np.nonzero(cores_of >= 2)[0]:
         comp = labels == lab
         ids = np.nonzero(core & (patch_label == lab))[0]
@@ -158,7 +159,7 @@ def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_w
         rank[ids] = np.arange(1, ids.size + 1)
         parts = _join_parts(_flood(np.where(comp, rank[filled], 0).astype(np.int32), dist, comp), patch,
                             np.isfinite(cells.mean), ground, cells.blind, height[ids], span[ids] <= FLAT_JUMP_M,
-                            nan_to_num(cells.mean) + step_limit(s, s, res))
+                            nan_to_num(cells.mean) + limit)
         for part in np.unique(parts[comp & (parts > 0)])[1:]:
             out[comp & (parts == part)] = len(origin)
             origin.append(int(origin[lab]))
