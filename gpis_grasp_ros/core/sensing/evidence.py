@@ -20,7 +20,7 @@ from gpis_grasp_ros.core.sensing.params import (
     CHROMA_SMOOTH_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, nan_to_num, norm_of
+from gpis_grasp_ros.core.sensing.pixel_kernels import mask_bounds, masked_rows, nan_to_num, norm_of
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
 
@@ -288,7 +288,7 @@ def _bounded_extension(target_px: np.ndarray, extension: np.ndarray, params: Sen
     b = params.border_px
     u_lo, v_lo, u_hi, v_hi = (0, 0, w - 1, h - 1) if params.roi_px is None else \
         (max(0, params.roi_px[0]), max(0, params.roi_px[1]), min(w - 1, params.roi_px[2]), min(h - 1, params.roi_px[3]))
-    vs, us = np.nonzero(extension)
-    if us.min() < u_lo + b or vs.min() < v_lo + b or us.max() > u_hi - b or vs.max() > v_hi - b:
+    v_min, v_max, u_min, u_max = mask_bounds(extension)
+    if u_min < u_lo + b or v_min < v_lo + b or u_max > u_hi - b or v_max > v_hi - b:
         return np.zeros_like(extension)
     return extension

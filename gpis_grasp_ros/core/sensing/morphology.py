@@ -6,6 +6,8 @@ import cv2
 import numpy as np
 from numba import njit
 
+from gpis_grasp_ros.core.sensing.pixel_kernels import mask_bounds
+
 
 def nearest_pixel(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For every pixel (or raster cell) of ``mask`` (H x W bool, at least one True): the distance to the nearest
@@ -102,10 +104,10 @@ def _flood(markers: np.ndarray, dist: np.ndarray, mask: np.ndarray) -> np.ndarra
     is flooded: nothing grows outside the mask. Each dilation step is done at the cells next to those the
     previous one labelled (:func:`_flood_kernel`), the same steps as dilating the whole box."""
     result = np.zeros(mask.shape, np.int32)
-    rows, cols = np.nonzero(mask)
-    if rows.size == 0:
+    if not mask.any():
         return result
-    box = np.s_[max(int(rows.min()) - 1, 0):int(rows.max()) + 2, max(int(cols.min()) - 1, 0):int(cols.max()) + 2]
+    r0, r1, c0, c1 = mask_bounds(mask)
+    box = np.s_[max(r0 - 1, 0):r1 + 2, max(c0 - 1, 0):c1 + 2]
     markers, dist, mask = markers[box], dist[box], mask[box]
     out = np.where(mask, markers, 0).astype(np.float32)
     levels = np.unique(np.floor(dist[mask & (markers == 0)] * 2.0) / 2.0)[::-1]

@@ -35,7 +35,13 @@ from gpis_grasp_ros.core.sensing.params import (
     SPLIT_NECK_M,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, distinct_cells_per_label, nan_to_num, raster_cells
+from gpis_grasp_ros.core.sensing.pixel_kernels import (
+    all_finite,
+    distinct_cells_per_label,
+    mask_bounds,
+    nan_to_num,
+    raster_cells,
+)
 from gpis_grasp_ros.core.sensing.steps import cell_heights, split_height_steps
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
@@ -371,8 +377,8 @@ def clear_object_at(u: int, v: int, px_labels: np.ndarray, clear: np.ndarray, ke
         return 0
     # the nearest clear object through the region: grow from the pixel one ring at a time within the region (on
     # the region's bounding box plus a pixel) until a ring meets a clear object
-    vs, us = np.nonzero(region | seed)
-    box = (slice(max(vs.min() - 1, 0), vs.max() + 2), slice(max(us.min() - 1, 0), us.max() + 2))
+    v_min, v_max, u_min, u_max = mask_bounds(region | seed)
+    box = (slice(max(v_min - 1, 0), v_max + 2), slice(max(u_min - 1, 0), u_max + 2))
     inside, labels = (region | seed)[box].astype(np.uint8), px_labels[box]
     is_clear = np.isin(labels, clear)
     reach, ring = seed[box].astype(np.uint8), np.ones((3, 3), np.uint8)
@@ -450,13 +456,13 @@ def _check_target(target_px: np.ndarray, target_xy: np.ndarray, target_raster: n
 
     Too wide = the footprint's convex hull is wider than ``max_opening_m`` in every direction *and*
     its largest inscribed disc is wider too (a toy plane's wings are wide but its fuselage fits)."""
-    vs, us = np.nonzero(target_px)
+    v_min, v_max, u_min, u_max = mask_bounds(target_px)
     b = params.border_px
     u_lo, v_lo, u_hi, v_hi = (0, 0, intr.width - 1, intr.height - 1) if params.roi_px is None else \
         (max(0, params.roi_px[0]), max(0, params.roi_px[1]), min(intr.width - 1, params.roi_px[2]),
          min(intr.height - 1, params.roi_px[3]))
-    if us.min() < u_lo + b or vs.min() < v_lo + b or us.max() > u_hi - b or vs.max() > v_hi - b:
-        raise ValueError(f'the target (pixels u {us.min()}..{us.max()}, v {vs.min()}..{vs.max()}) is cut by the image '
+    if u_min < u_lo + b or v_min < v_lo + b or u_max > u_hi - b or v_max > v_hi - b:
+        raise ValueError(f'the target (pixels u {u_min}..{u_max}, v {v_min}..{v_max}) is cut by the image '
                          'border: its shape is not fully seen (move the camera or the object, or choose another '
                          'target)')
     if params.max_opening_m > 0:

@@ -69,6 +69,16 @@ def _nan_to_num(x, nan, big, small, out):
         out[k] = v
 
 
+def mask_bounds(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(first row, last row, first column, last column) of the True pixels of an (H, W) mask: the extremes of
+    ``np.nonzero(mask)``, from the rows and columns that hold one; ValueError (as their ``min``) when there is none."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        raise ValueError('zero-size array to reduction operation minimum which has no identity')
+    cols = np.flatnonzero(mask.any(axis=0))
+    return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
+
+
 def all_finite(x: np.ndarray) -> np.ndarray:
     """``np.isfinite(x).all(axis=-1)``, per component of the last axis."""
     out = np.isfinite(x[..., 0])

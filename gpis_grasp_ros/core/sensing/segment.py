@@ -13,6 +13,7 @@ from gpis_grasp_ros.core.sensing.noise_map import noise_map
 from gpis_grasp_ros.core.sensing.objects import isolate_target, object_height
 from gpis_grasp_ros.core.sensing.occlusion import move_seen_through, place_feet, sensor_shadow
 from gpis_grasp_ros.core.sensing.params import SensingParams, SensingResult
+from gpis_grasp_ros.core.sensing.pixel_kernels import mask_bounds
 from gpis_grasp_ros.core.sensing.rasterise import rasterise
 from gpis_grasp_ros.core.sensing.table import fit_table, pixel_footprint
 
@@ -56,7 +57,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
 
     valid, target_px, colour = frames.valid, target.target_px, ev.colour
     noise_px = np.where(missing_px, np.nan, meas.var_z + params.disagreement_variance_m2 * rho)
-    vs, us = np.nonzero(target_px)
+    v_min, v_max, u_min, u_max = mask_bounds(target_px)
     return SensingResult(
         occupancy=cells.occupancy, noise_variance=noise.noise, missing=cells.missing, geometry=cells.geometry,
         table_depth=fit.table.offset_m, train_mask=noise.train_mask, observed=cells.observed,
@@ -67,7 +68,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         rgb_mask=ev.p_c > 0.5, missing_mask=missing_px, object_mask=target_px,
         labels_px=np.where(np.isin(objects.px_labels, objects.kept) | target_px, objects.px_labels, 0),
         occupancy_px=target.occ, noise_px=noise_px,
-        disagreement_px=rho, bbox_px=(int(us.min()), int(vs.min()), int(us.max()), int(vs.max())),
+        disagreement_px=rho, bbox_px=(u_min, v_min, u_max, v_max),
         intrinsics=intrinsics, object_height=object_height(meas.height, target_px & valid & (ev.p_d > 0.5)),
         seen_through_px=through_px, shadow_px=shadow_px, clear_body=cells.body, seen_behind=cells.behind,
         obstacles=cells.obstacle)

@@ -47,22 +47,50 @@ def cell_heights(iy: np.ndarray, ix: np.ndarray, evidence: np.ndarray, height: n
     where ``height`` is finite, ``missing`` where it has no return."""
     ny, nx = shape
     size = nx * ny
-    key = iy * nx + ix
-    seen = evidence & np.isfinite(height) & ~missing
-    k, h = key[seen], height[seen]
-    count = np.bincount(k, minlength=size)
+    count, total, total_s2, hi, lo, n_evidence, blind_any = _cell_sums(
+        np.ascontiguousarray(iy, dtype=np.int64).ravel(), np.ascontiguousarray(ix, dtype=np.int64).ravel(),
+        np.ascontiguousarray(evidence, dtype=bool).ravel(), np.ascontiguousarray(height, dtype=np.float64).ravel(),
+        np.ascontiguousarray(sigma, dtype=np.float64).ravel(), np.ascontiguousarray(missing, dtype=bool).ravel(),
+        nx, size)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+        rms = np.sqrt(np.where(count > 0, total_s2 / np.maximum(count, 1), np.nan))
+    blind = blind_any & (count == 0)
+    return CellHeights(mean.reshape(shape), rms.reshape(shape), np.where(count > 0, hi - lo, np.nan).reshape(shape),
+                       count.reshape(shape), n_evidence.reshape(shape), blind.reshape(shape))
+
+
+@njit(cache=True, nogil=True)
+def _cell_sums(iy, ix, evidence, height, sigma, missing, nx, size):
+    """Per cell, in pixel order (``np.bincount``'s sums, ``np.maximum.at`` / ``np.minimum.at``): the evidence
+    pixels seen in depth (finite height, not missing), the sums of their heights and squared sigmas, their
+    largest and smallest height; all the evidence pixels, and whether any of them is missing."""
+    count = np.zeros(size, np.int64)
+    total = np.zeros(size)
+    total_s2 = np.zeros(size)
     hi = np.full(size, -np.inf)
     lo = np.full(size, np.inf)
-    np.maximum.at(hi, k, h)
-    np.minimum.at(lo, k, h)
-    with np.errstate(invalid='ignore', divide='ignore'):
-        mean = np.where(count > 0, np.bincount(k, weights=h, minlength=size) / np.maximum(count, 1), np.nan)
-        rms = np.sqrt(np.where(count > 0, np.bincount(k, weights=sigma[seen] ** 2, minlength=size)
-                               / np.maximum(count, 1), np.nan))
-    blind = (np.bincount(key[evidence & missing], minlength=size) > 0) & (count == 0)
-    return CellHeights(mean.reshape(shape), rms.reshape(shape), np.where(count > 0, hi - lo, np.nan).reshape(shape),
-                       count.reshape(shape), np.bincount(key[evidence], minlength=size).reshape(shape),
-                       blind.reshape(shape))
+    n_evidence = np.zeros(size, np.int64)
+    blind_any = np.zeros(size, np.bool_)
+    for p in range(evidence.size):
+        if not evidence[p]:
+            continue
+        k = iy[p] * nx + ix[p]
+        n_evidence[k] += 1
+        if missing[p]:
+            blind_any[k] = True
+            continue
+        h = height[p]
+        if not np.isfinite(h):
+            continue
+        count[k] += 1
+        total[k] += h
+        total_s2[k] += sigma[p] * sigma[p]
+        if h > hi[k]:  # np.maximum keeps the value it has on a tie (and signed zeros)
+            hi[k] = h
+        if h < lo[k]:
+            lo[k] = h
+    return count, total, total_s2, hi, lo, n_evidence, blind_any
 
 
 def step_limit(sigma_a: np.ndarray, sigma_b: np.ndarray, res: float) -> np.ndarray:

@@ -8,6 +8,7 @@ import pytest
 from gpis_grasp_ros.core.sensing.pixel_kernels import (
     all_finite,
     distinct_cells_per_label,
+    mask_bounds,
     masked_rows,
     max_tangent,
     nan_to_num,
@@ -159,3 +160,14 @@ def test_draw_columns_equals_the_array_code(include_point):
     shifted = np.full((rows, cols), np.inf)  # a buffer over other pixels (u0, v0) = (10, -5)
     draw_columns(foot, h, n, normal, include_point, cam, shifted, 10, -5, False)
     assert np.array_equal(shifted[5:, :cols - 10], want[:rows - 5, 10:])
+
+
+def test_mask_bounds_are_the_extremes_of_nonzero():
+    rng = np.random.default_rng(11)
+    for density in (0.3, 0.001):
+        mask = rng.random((70, 90)) < density
+        mask[rng.integers(70), rng.integers(90)] = True
+        vs, us = np.nonzero(mask)
+        assert mask_bounds(mask) == (vs.min(), vs.max(), us.min(), us.max())
+    with pytest.raises(ValueError):
+        mask_bounds(np.zeros((4, 5), bool))

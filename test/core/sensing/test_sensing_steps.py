@@ -176,3 +176,37 @@ def test_the_sensors_noise_and_specks_never_split_one_surface():
 def test_step_limit_is_the_noise_of_a_difference_plus_a_45_degree_rise():
     assert step_limit(np.array(0.0), np.array(0.0), RES) == pytest.approx(RES)
     assert step_limit(np.array(0.001), np.array(0.001), 0.0) == pytest.approx(3.29 * math.sqrt(2) * 0.001, rel=1e-3)
+
+
+def test_cell_heights_equal_the_array_code():
+    from gpis_grasp_ros.core.sensing.steps import cell_heights
+
+    rng = np.random.default_rng(12)
+    shape, img = (23, 31), (90, 120)
+    iy, ix = rng.integers(0, shape[0], img), rng.integers(0, shape[1], img)
+    evidence = rng.random(img) < 0.6
+    height = rng.normal(0.02, 0.01, img) * np.exp(rng.uniform(-20, 20, img))
+    height[rng.random(img) < 0.1] = np.nan
+    height[rng.random(img) < 0.02] = 0.0
+    height[rng.random(img) < 0.02] = -0.0
+    sigma = rng.uniform(0.0, 0.003, img)
+    missing = rng.random(img) < 0.1
+    ny, nx = shape
+    size = nx * ny
+    key = iy * nx + ix
+    seen = evidence & np.isfinite(height) & ~missing
+    k, h = key[seen], height[seen]
+    count = np.bincount(k, minlength=size)
+    hi, lo = np.full(size, -np.inf), np.full(size, np.inf)
+    np.maximum.at(hi, k, h)
+    np.minimum.at(lo, k, h)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        mean = np.where(count > 0, np.bincount(k, weights=h, minlength=size) / np.maximum(count, 1), np.nan)
+        rms = np.sqrt(np.where(count > 0, np.bincount(k, weights=sigma[seen] ** 2, minlength=size)
+                               / np.maximum(count, 1), np.nan))
+    blind = (np.bincount(key[evidence & missing], minlength=size) > 0) & (count == 0)
+    want = (mean.reshape(shape), rms.reshape(shape), np.where(count > 0, hi - lo, np.nan).reshape(shape),
+            count.reshape(shape), np.bincount(key[evidence], minlength=size).reshape(shape), blind.reshape(shape))
+    got = cell_heights(iy, ix, evidence, height, sigma, missing, shape)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype and np.array_equal(np.asarray(g).view(np.uint8), np.asarray(w).view(np.uint8))
