@@ -71,13 +71,24 @@ def prism_footprint(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFr
     at every ``step_m`` of height (the silhouette dilated by one pixel for the rounding). Seen by a camera
     tilted by theta, the silhouette's table points are the footprint swept H tan(theta) away from the camera;
     this undoes the sweep. ``height_m`` = 0 gives the silhouette's own table points."""
+    return _prism_test(cells_xy, silhouette, table, intrinsics)(height_m, step_m)
+
+
+def _prism_test(cells_xy: np.ndarray, silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics):
+    """:func:`prism_footprint` of these cells and silhouette as a function of the height (and step), the
+    dilated silhouette and the cells' camera points made once for all the heights tried."""
     sil = cv2.dilate(np.asarray(silhouette, dtype=np.uint8), np.ones((3, 3), np.uint8)) > 0
     base = table.to_camera(np.asarray(cells_xy, dtype=np.float64))  # camera frame, on the table
-    heights = np.linspace(0.0, max(height_m, 0.0), max(2, int(math.ceil(height_m / step_m)) + 1))
-    heights = heights[np.r_[0, heights.size - 1, 1 + coarse_to_fine(heights.size - 2)]]  # the same test, sooner off
-    # h above the table, towards the camera
-    return under_prism(np.ascontiguousarray(base.reshape(-1, 3)), table.n, heights, camera_vector(intrinsics),
-                       sil).reshape(base.shape[:-1])
+    flat = np.ascontiguousarray(base.reshape(-1, 3))
+    cam = camera_vector(intrinsics)
+
+    def under(height_m: float, step_m: float = PRISM_STEP_M) -> np.ndarray:
+        heights = np.linspace(0.0, max(height_m, 0.0), max(2, int(math.ceil(height_m / step_m)) + 1))
+        heights = heights[np.r_[0, heights.size - 1, 1 + coarse_to_fine(heights.size - 2)]]  # the same test, sooner off
+        # h above the table, towards the camera
+        return under_prism(flat, table.n, heights, cam, sil).reshape(base.shape[:-1])
+
+    return under
 
 
 def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: CameraIntrinsics,
@@ -124,8 +135,10 @@ def clear_body_height(silhouette: np.ndarray, table: TableFrame, intrinsics: Cam
     view = view / max(float(np.linalg.norm(view)), 1e-12)
     across = np.array([-view[1], view[0]])
 
+    under_at = _prism_test(cells, silhouette, table, intrinsics)
+
     def footprint(h: float) -> np.ndarray:
-        return cells[prism_footprint(cells, silhouette, table, intrinsics, h)]
+        return cells[under_at(h)]
 
     def narrow_minus_height(h: float) -> float:
         under = footprint(h)
@@ -195,9 +208,8 @@ def prism_alternatives(geometry: GridGeometry, silhouette: np.ndarray, table: Ta
     """A clear body's prism cells (as :func:`_clear_body_cells` makes them) under the heights ``height_m`` /
     ``factor`` and ``height_m`` x ``factor``: the footprint its height prior allows (the noise map's
     variance of the body, :func:`~gpis_grasp_ros.core.sensing.noise_map.prism_variance`)."""
-    centres = geometry.cell_centers()
-    return tuple(observed & ~depth_seen & ~missing & prism_footprint(centres, silhouette, table, intrinsics, h)
-                 for h in (height_m / factor, height_m * factor))
+    under_at = _prism_test(geometry.cell_centers(), silhouette, table, intrinsics)
+    return tuple(observed & ~depth_seen & ~missing & under_at(h) for h in (height_m / factor, height_m * factor))
 
 
 class Target(NamedTuple):

@@ -103,8 +103,8 @@ def draw_columns(foot, h, n, normal, include_point, cam, zbuf, u0, v0, in_image)
                 v = int(vs[k]) - v0
                 if u < 0 or u >= cols or v < 0 or v >= rows:
                     continue
-            if z < zbuf[v, u]:
-                zbuf[v, u] = z
+            cur = zbuf[v, u]
+            zbuf[v, u] = z if z < cur else cur  # a select: no branch that the depths decide
 
 
 @njit(cache=True, nogil=True, inline='always')
