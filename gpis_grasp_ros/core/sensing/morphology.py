@@ -110,8 +110,14 @@ def _flood(markers: np.ndarray, dist: np.ndarray, mask: np.ndarray) -> np.ndarra
     box = np.s_[max(r0 - 1, 0):r1 + 2, max(c0 - 1, 0):c1 + 2]
     markers, dist, mask = markers[box], dist[box], mask[box]
     out = np.where(mask, markers, 0).astype(np.float32)
-    levels = np.unique(np.floor(dist[mask & (markers == 0)] * 2.0) / 2.0)[::-1]
-    _flood_kernel(out, np.ascontiguousarray(dist), np.ascontiguousarray(mask), np.ascontiguousarray(levels))
+    free = np.flatnonzero(mask & (markers == 0))  # the cells to flood, by the level from which they may be
+    cell_level = np.floor(dist.ravel()[free] * 2.0) / 2.0
+    levels = np.unique(cell_level)
+    rank = levels.size - 1 - np.searchsorted(levels, cell_level)  # index in the levels from the highest down
+    order = np.argsort(rank, kind='stable')
+    starts = np.searchsorted(rank[order], np.arange(levels.size + 1))
+    _flood_kernel(out, np.ascontiguousarray(dist), np.ascontiguousarray(mask), np.ascontiguousarray(levels[::-1]),
+                  free[order], starts)
     result[box] = out.astype(np.int32)
     return result
 
@@ -128,26 +134,30 @@ def _neighbour_max(out, r, c):
 
 
 @njit(cache=True, nogil=True)
-def _flood_kernel(out, dist, mask, levels) -> None:
+def _flood_kernel(out, dist, mask, levels, cells, starts) -> None:
     """The flooding of :func:`_flood` in place on ``out`` (float32 labels, 0 = none): at every level, steps in
     which each free allowed cell (in ``mask``, ``dist`` >= level, unlabelled) with a labelled 8-neighbour takes
-    the largest label around it, all from the labels before the step, until none changes."""
+    the largest label around it, all from the labels before the step, until none changes.
+
+    A level's first step looks only at the cells it allows first (``cells[starts[i]:starts[i + 1]]``, flat
+    indices, for ``levels[i]``): after the previous level no allowed free cell was left next to a label."""
     rows, cols = out.shape
     cand = np.empty(rows * cols, np.int64)
     nxt = np.empty(rows * cols, np.int64)
     vals = np.empty(rows * cols, np.float32)
     stamp = np.full(rows * cols, -1, np.int64)
     step = 0
-    for level in levels:
+    for li in range(levels.size):
+        level = levels[li]
         n = 0
-        for r in range(rows):
-            for c in range(cols):
-                if mask[r, c] and dist[r, c] >= level and out[r, c] == 0:
-                    g = _neighbour_max(out, r, c)
-                    if g > 0:
-                        cand[n] = r * cols + c
-                        vals[n] = g
-                        n += 1
+        for j in range(starts[li], starts[li + 1]):
+            r, c = cells[j] // cols, cells[j] % cols
+            if mask[r, c] and dist[r, c] >= level and out[r, c] == 0:
+                g = _neighbour_max(out, r, c)
+                if g > 0:
+                    cand[n] = r * cols + c
+                    vals[n] = g
+                    n += 1
         while n > 0:
             for k in range(n):
                 out[cand[k] // cols, cand[k] % cols] = vals[k]
