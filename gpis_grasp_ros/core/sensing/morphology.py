@@ -1,4 +1,5 @@
-"""Image and raster morphology shared by the stages: nearest pixels, hole filling, reconstruction, flooding."""
+"""Image and raster morphology shared by the stages: nearest pixels, hole filling, reconstruction, flooding, and the
+components of a raster's 4-neighbour graph."""
 
 from __future__ import annotations
 
@@ -184,3 +185,43 @@ def _filled(mask: np.ndarray) -> np.ndarray:
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     cv2.drawContours(out, contours, -1, 1, thickness=cv2.FILLED)
     return out > 0
+
+
+def grid_components(right: np.ndarray, down: np.ndarray) -> np.ndarray:
+    """Component of every cell of an (ny, nx) raster whose 4-neighbour edges are ``right`` (ny, nx - 1: cell (r, c)
+    joined to (r, c + 1)) and ``down`` (ny - 1, nx: to (r + 1, c)), as ``scipy.sparse.csgraph.connected_components``
+    numbers them on that graph (undirected; components in the order of their first cell, row-major): (ny, nx)
+    int32 labels from 0, every cell without an edge a component of its own."""
+    ny, nx = right.shape[0], down.shape[1]
+    labels = np.empty(ny * nx, np.int32)
+    _grid_components(np.ascontiguousarray(right, dtype=bool), np.ascontiguousarray(down, dtype=bool), labels)
+    return labels.reshape(ny, nx)
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _root(parent, a):
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True)
+def _grid_components(right, down, labels):
+    ny, nx = down.shape[0] + 1, right.shape[1] + 1
+    parent = np.arange(ny * nx)
+    for r in range(ny):
+        for c in range(nx):
+            for ok, q in ((c + 1 < nx and right[r, c], r * nx + c + 1), (r + 1 < ny and down[r, c], (r + 1) * nx + c)):
+                if ok:
+                    a, b = _root(parent, r * nx + c), _root(parent, q)
+                    if a != b:  # the smaller index is the root: a component's root is its first cell
+                        parent[max(a, b)] = min(a, b)
+    found = np.full(ny * nx, -1, np.int32)
+    n = 0
+    for p in range(ny * nx):
+        root = _root(parent, p)
+        if found[root] < 0:
+            found[root] = n
+            n += 1
+        labels[p] = found[root]

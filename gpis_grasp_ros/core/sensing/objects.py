@@ -11,8 +11,6 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 from scipy.ndimage import find_objects
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.special import ndtri
 
 from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics
@@ -22,7 +20,7 @@ from gpis_grasp_ros.core.sensing.evidence import (
     chromatic_extension,
     chromaticity_distance,
 )
-from gpis_grasp_ros.core.sensing.morphology import _filled, _flood, _nearest_label, _reconstruct
+from gpis_grasp_ros.core.sensing.morphology import _filled, _flood, _nearest_label, _reconstruct, grid_components
 from gpis_grasp_ros.core.sensing.params import (
     CHROMA_CLEAR_FRACTION,
     FLAT_JUMP_M,
@@ -144,17 +142,9 @@ def split_flat_support(labels: np.ndarray, cell_height: np.ndarray, res: float,
     min_cells = FLAT_MIN_AREA_M2 / res ** 2
     h = nan_to_num(cell_height)
     # 4-neighbour smoothness edges between depth-seen cells of the same component
-    ny, nx = labels.shape
-    idx = np.arange(ny * nx).reshape(ny, nx)
-    rows, cols = [], []
-    for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
-        ok = seen[a] & seen[b] & (labels[a] == labels[b]) & (np.abs(h[a] - h[b]) <= FLAT_STEP_M)
-        rows.append(idx[a][ok])
-        cols.append(idx[b][ok])
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    graph = coo_matrix((np.ones(r.size), (r, c)), shape=(ny * nx, ny * nx))
-    _, smooth = connected_components(graph, directed=False)
-    smooth = np.where(seen.ravel(), smooth + 1, 0).reshape(ny, nx)
+    edges = [seen[a] & seen[b] & (labels[a] == labels[b]) & (np.abs(h[a] - h[b]) <= FLAT_STEP_M)
+             for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :]))]
+    smooth = np.where(seen, grid_components(*edges) + 1, 0)
     sizes = np.bincount(smooth.ravel())
     sizes[0] = 0
     big = np.nonzero(sizes >= min_cells)[0]  # smooth regions large enough to be a support, and their labels

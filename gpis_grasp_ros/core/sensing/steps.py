@@ -18,11 +18,9 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 from numba import njit
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.special import ndtri
 
-from gpis_grasp_ros.core.sensing.morphology import _flood, _nearest_label
+from gpis_grasp_ros.core.sensing.morphology import _flood, _nearest_label, grid_components
 from gpis_grasp_ros.core.sensing.params import CHROMA_CLEAR_FRACTION, FLAT_JUMP_M, STEP_FALSE_ALARM, STEP_SLOPE_DEG
 from gpis_grasp_ros.core.sensing.pixel_kernels import nan_to_num
 
@@ -109,17 +107,9 @@ def surface_patches(labels: np.ndarray, cells: CellHeights, res: float) -> np.nd
     h = nan_to_num(cells.mean)
     limit = step_limit(s, s, res)
     seen = np.isfinite(cells.mean) & (labels > 0) & (nan_to_num(cells.spread, nan=np.inf) <= limit) & (h > limit)
-    ny, nx = labels.shape
-    idx = np.arange(ny * nx).reshape(ny, nx)
-    rows, cols = [], []
-    for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
-        ok = seen[a] & seen[b] & (labels[a] == labels[b]) & (np.abs(h[a] - h[b]) <= step_limit(s[a], s[b], res))
-        rows.append(idx[a][ok])
-        cols.append(idx[b][ok])
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    graph = coo_matrix((np.ones(r.size), (r, c)), shape=(ny * nx, ny * nx))
-    _, patch = connected_components(graph, directed=False)
-    return np.where(seen.ravel(), patch + 1, 0).reshape(ny, nx)
+    edges = [seen[a] & seen[b] & (labels[a] == labels[b]) & (np.abs(h[a] - h[b]) <= step_limit(s[a], s[b], res))
+             for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :]))]
+    return np.where(seen, grid_components(*edges) + 1, 0)
 
 
 def split_height_steps(labels: np.ndarray, cells: CellHeights, res: float, min_width_m: float, min_area_m2: float,

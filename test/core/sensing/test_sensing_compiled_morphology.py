@@ -140,3 +140,22 @@ def test_coarse_to_fine_visits_every_sample_once_middle_first(n):
     if n >= 3:
         assert order[0] == (n - 1) // 2
         assert {int(order[1]), int(order[2])} == {((n - 1) // 2 - 1) // 2, ((n - 1) // 2 + 1 + n - 1) // 2}
+
+
+@pytest.mark.parametrize('shape', [(31, 47), (1, 9), (8, 1)])
+def test_grid_components_number_as_scipy(shape):
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from gpis_grasp_ros.core.sensing.morphology import grid_components
+
+    rng = np.random.default_rng(shape[0])
+    ny, nx = shape
+    for p in (0.3, 0.6, 0.9):
+        right, down = rng.random((ny, nx - 1)) < p, rng.random((ny - 1, nx)) < p
+        idx = np.arange(ny * nx).reshape(ny, nx)
+        r = np.concatenate([idx[:, :-1][right], idx[:-1, :][down]])
+        c = np.concatenate([idx[:, 1:][right], idx[1:, :][down]])
+        _, want = connected_components(coo_matrix((np.ones(r.size), (r, c)), shape=(ny * nx, ny * nx)), directed=False)
+        got = grid_components(right, down)
+        assert got.dtype == want.dtype and np.array_equal(got.ravel(), want)
