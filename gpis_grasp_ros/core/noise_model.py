@@ -245,6 +245,7 @@ def effective_frame_count(depth_frames: np.ndarray, model: SensorModel, min_pixe
     model_var = model.variance(mean)
     # the median of a sample variance of n Gaussian values is chi2_{n-1} median / (n - 1) of the variance
     unbias = float(chi2.ppf(0.5, n - 1) / (n - 1))
-    ratio = float(np.median(s2, overwrite_input=True) / unbias
-                  / max(float(np.median(model_var, overwrite_input=True)), 1e-18))
+    from gpis_grasp_ros.core.sensing.pixel_kernels import median  # not at the top: the sensing package imports this
+
+    ratio = float(median(s2) / unbias / max(float(median(model_var)), 1e-18))
     return float(1.0 + (n - 1) * min(1.0, ratio))

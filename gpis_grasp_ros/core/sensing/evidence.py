@@ -20,7 +20,7 @@ from gpis_grasp_ros.core.sensing.params import (
     CHROMA_SMOOTH_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import mask_bounds, masked_rows, nan_to_num, norm_of
+from gpis_grasp_ros.core.sensing.pixel_kernels import mask_bounds, masked_rows, median, nan_to_num, norm_of
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
 
@@ -90,12 +90,12 @@ def _colour_model(rgb: np.ndarray, train: np.ndarray, params: SensingParams) -> 
     else:
         table_rgb = np.median(samples, axis=0)
     dist, ratio = shadow_line_distance(samples, table_rgb)
-    mad = 1.4826 * float(np.median(np.abs(dist - np.median(dist))))
+    mad = 1.4826 * float(median(np.abs(dist - median(dist))))
     c_thr = (float(params.color_threshold) if params.color_threshold > 0
-             else max(params.color_threshold_min, float(np.median(dist)) + params.color_mad_factor * mad))
+             else max(params.color_threshold_min, float(median(dist)) + params.color_mad_factor * mad))
     c_sigma = float(params.color_sigma) if params.color_sigma > 0 else max(2.0, mad)
-    ratio_mad = 1.4826 * float(np.median(np.abs(ratio - np.median(ratio))))
-    dark_ratio = float(np.median(ratio)) - max(0.1, params.color_mad_factor * ratio_mad)
+    ratio_mad = 1.4826 * float(median(np.abs(ratio - median(ratio))))
+    dark_ratio = float(median(ratio)) - max(0.1, params.color_mad_factor * ratio_mad)
     return ColourModel(table_rgb, c_thr, c_sigma, dark_ratio)
 
 
@@ -146,16 +146,16 @@ def chromaticity_distance(rgb: np.ndarray, train: np.ndarray, smooth_px: float =
     # the training pixels' chromaticities and brightness (total), then their distances from the median one
     samples = np.empty((4, n), np.float32)
     _chroma_samples(img, train, samples)
-    c_table = np.array([np.median(samples[k]) for k in range(3)], dtype=np.float32)
+    c_table = np.array([median(samples[k]) for k in range(3)], dtype=np.float32)
     dist = np.empty(img.shape[0], np.float32)
     dist_train = np.empty(n, np.float32)
     _chroma_distance(img, train, c_table, dist, dist_train)
-    med = float(np.median(dist_train))
-    scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(np.median(np.abs(dist_train - med))))
+    med = float(median(dist_train))
+    scale = max(CHROMA_MIN_SIGMA, 1.4826 * float(median(np.abs(dist_train - med))))
     # the chromaticity of a darker pixel is noisier (shot noise over less light): its spread is the table's
     # times sqrt(table brightness / pixel brightness), so a shadow is not flagged by its noise
     z = np.empty(img.shape[0])
-    _chroma_z(img, dist, np.float32(float(np.median(samples[3]))), np.float32(scale), np.float32(med),
+    _chroma_z(img, dist, np.float32(float(median(samples[3]))), np.float32(scale), np.float32(med),
               np.float32(dark), z)
     return z.reshape(shape), med, scale
 

@@ -10,7 +10,7 @@ import numpy as np
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.params import SUPPORT_MIN_PX, SUPPORT_RADIUS_M, SensingParams
-from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, nan_to_num, norm_of
+from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, median, nan_to_num, norm_of
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 
@@ -129,5 +129,5 @@ def pixel_footprint(z_mean: np.ndarray, fit: TableFit, intrinsics: CameraIntrins
     z = z[np.isfinite(z)]
     if z.size == 0:
         raise ValueError('no depth to measure a pixel footprint at')
-    return float(np.median(z)) / min(intrinsics.fx, intrinsics.fy) / max(
+    return float(median(z)) / min(intrinsics.fx, intrinsics.fy) / max(
         math.cos(math.radians(fit.table.tilt_deg)), 0.3)

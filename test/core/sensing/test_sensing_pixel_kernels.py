@@ -11,6 +11,7 @@ from gpis_grasp_ros.core.sensing.pixel_kernels import (
     mask_bounds,
     masked_rows,
     max_tangent,
+    median,
     nan_to_num,
     nearer_difference_area,
     norm_of,
@@ -171,3 +172,23 @@ def test_mask_bounds_are_the_extremes_of_nonzero():
         assert mask_bounds(mask) == (vs.min(), vs.max(), us.min(), us.max())
     with pytest.raises(ValueError):
         mask_bounds(np.zeros((4, 5), bool))
+
+
+@pytest.mark.parametrize('dtype', [np.float32, np.float64])
+@pytest.mark.parametrize('n', [5000, 5001, 70001])
+def test_median_equals_numpy(dtype, n):
+    rng = np.random.default_rng(n)
+    cases = [rng.normal(0.3, 0.01, n), rng.exponential(1.0, n) * np.exp(rng.uniform(-30, 30, n)),
+             np.round(rng.normal(5.0, 2.0, n)),  # ties
+             np.concatenate([np.full(n - 10, 0.7), rng.normal(0.7, 1e-3, 10)]),  # one value nearly everywhere
+             np.concatenate([rng.normal(0.0, 1.0, n - 2), [-1e308, 1e308]]),  # a range that overflows
+             np.where(rng.random(n) < 0.3, 0.0, rng.normal(0.0, 1.0, n))]  # zeros
+    signed = cases[-1].copy()
+    signed[::7] = -0.0
+    with_nan = cases[0].copy()
+    with_nan[3] = np.nan
+    for x in [*cases, signed, with_nan, np.full(n, 2.5)]:
+        with np.errstate(over='ignore'):
+            x = x.astype(dtype)
+        got, want = median(x), np.median(x)
+        assert type(got) is type(want) and np.asarray(got).tobytes() == np.asarray(want).tobytes()
