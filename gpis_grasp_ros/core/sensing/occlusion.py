@@ -20,7 +20,14 @@ from gpis_grasp_ros.core.sensing.params import (
     SHADOW_HULL_SPAN_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, masked_rows, nan_to_num, pixel_feet, vector_norm
+from gpis_grasp_ros.core.sensing.pixel_kernels import (
+    all_finite,
+    masked_rows,
+    nan_to_num,
+    pixel_feet,
+    ray_cosine,
+    vector_norm,
+)
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, draw_columns, prism_heights
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -311,7 +318,7 @@ def place_feet(frames: AveragedFrames, fit: TableFit, meas: Measurement, missing
     off_hull |= shadow_px  # the sensor's shadow: table it did not measure
     hit_points, hit = table.ray_intersection(rays)
     ray_dot = rays @ normal
-    ray_cos = np.maximum(np.abs(ray_dot) / vector_norm(rays), 1e-3)  # cosine of a ray to the normal
+    ray_cos = ray_cosine(rays, ray_dot)  # cosine of a ray to the normal
     # a seen pixel's foot p - h n; a no-return pixel's where its ray is h_missing above the plane, dropped onto it
     foot = pixel_feet(rays, ray_dot, meas.points, height, h_missing, valid, hit, normal, float(table.offset_m))
     foot_xy = np.ascontiguousarray(table.to_table(foot)[0])

@@ -195,8 +195,10 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     in_grid = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < m) & (row >= 0) & (row < m)
     miss_t = missing_px & target_px
     informative = in_grid & (valid | miss_t)
-    valid_px = valid.astype(np.float64)
-    occ_t = np.where(target_px, occ, 0.0)  # other objects are not the target: table in its grid
+
+    def occ_t(i):  # other objects are not the target: table in its grid
+        return np.where(target_px[i], occ[i], 0.0)
+
     # only the informative pixels reach a cell: the area weights are taken over their bounding box (plus the
     # 2 pixels the median filter and the differences read around it)
     vs, us = np.nonzero(informative)
@@ -205,14 +207,15 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
     wt_box = _table_area_weights(foot_xy[box], fit.table.to_table(feet.hit_points[box])[0],
                                  all_finite(foot_xy[box]))
     wt = wt_box[vs - box[0].start, us - box[1].start]
-    seen_in_depth = target_px & valid & (p_d > 0.5)
-    contact_px = target.contact_px.astype(np.float64)
-    others_px = target.others_px.astype(np.float64)
-    vp = valid_px[vs, us]
+    contact_px, others_px = target.contact_px, target.others_px
+    px = (vs, us)  # the per-pixel values at the informative pixels only
+    vp = valid[px].astype(np.float64)
+    seen_in_depth = target_px[px] & valid[px] & (p_d[px] > 0.5)
     sums = [np.bincount(cell, weights=wt * v, minlength=m * m)
-            for v in (np.ones(vs.size), occ_t[vs, us], p_d[vs, us] * vp, p_c[vs, us] * vp, vp,
-                      miss_t[vs, us].astype(np.float64), np.where(valid[vs, us], var_z[vs, us], 0.0),
-                      seen_in_depth[vs, us].astype(np.float64), contact_px[vs, us], others_px[vs, us])]
+            for v in (np.ones(vs.size), occ_t(px), p_d[px] * vp, p_c[px] * vp, vp,
+                      miss_t[px].astype(np.float64), np.where(valid[px], var_z[px], 0.0),
+                      seen_in_depth.astype(np.float64), contact_px[px].astype(np.float64),
+                      others_px[px].astype(np.float64))]
     n_inf, s_occ, s_pd, s_pc, s_valid, s_miss, s_var, s_seen, s_contact, s_others = (s.reshape(m, m) for s in sums)
     depth_seen_cell = s_seen > 0.5 * np.maximum(n_inf, 1e-12)  # mostly the target seen in depth (before any fill)
 
@@ -252,9 +255,10 @@ def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fi
         take = sees_table | sees_target_hole
         r2, c2, v2, u2 = rr[take], cc[take], vi[take], ui[take]
         n_inf[r2, c2] = 1.0
-        s_occ[r2, c2] = occ_t[v2, u2]
-        s_pd[r2, c2], s_pc[r2, c2] = p_d[v2, u2] * valid_px[v2, u2], p_c[v2, u2] * valid_px[v2, u2]
-        s_valid[r2, c2], s_miss[r2, c2] = valid_px[v2, u2], miss_t[v2, u2]
+        s_occ[r2, c2] = occ_t((v2, u2))
+        valid_2 = valid[v2, u2].astype(np.float64)
+        s_pd[r2, c2], s_pc[r2, c2] = p_d[v2, u2] * valid_2, p_c[v2, u2] * valid_2
+        s_valid[r2, c2], s_miss[r2, c2] = valid_2, miss_t[v2, u2]
         s_var[r2, c2] = np.where(valid[v2, u2], var_z[v2, u2], 0.0)
         s_contact[r2, c2] = contact_px[v2, u2]
         s_others[r2, c2] = others_px[v2, u2]

@@ -16,6 +16,7 @@ from gpis_grasp_ros.core.sensing.pixel_kernels import (
     nearer_difference_area,
     norm_of,
     pixel_feet,
+    ray_cosine,
     vector_norm,
 )
 from gpis_grasp_ros.core.sensing.ray_kernels import draw_columns
@@ -131,6 +132,12 @@ def test_pixel_feet_and_max_tangent_equal_the_array_code():
         got = pixel_feet(rays, ray_dot, points, height, h_missing, valid, hit, normal, offset)
     assert np.array_equal(got, want, equal_nan=True)
     ray_cos = np.maximum(np.abs(ray_dot) / np.linalg.norm(rays, axis=-1), 1e-3)
+    odd = ray_dot.copy()
+    odd.ravel()[::13] = np.nan
+    odd.ravel()[::19] = 1e-9  # below the floor
+    assert np.array_equal(ray_cosine(rays, odd), np.maximum(np.abs(odd) / np.linalg.norm(rays, axis=-1), 1e-3),
+                          equal_nan=True)
+    assert np.array_equal(ray_cosine(rays, ray_dot), ray_cos)
     ray_cos.ravel()[::17] = np.nan
     ray_cos.ravel()[::23] = 1.5  # 1 - cos^2 < 0
     assert max_tangent(ray_cos) == float(np.nanmax(np.sqrt(np.maximum(1.0 - ray_cos ** 2, 0.0)) / ray_cos))
