@@ -29,7 +29,7 @@ from gpis_grasp_ros.core.sensing.pixel_kernels import (
     vector_norm,
 )
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, draw_columns, prism_heights
-from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure
+from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, measure_again
 from gpis_grasp_ros.core.table_frame import TableFrame
 
 
@@ -277,7 +277,8 @@ def move_seen_through(frames: AveragedFrames, fit: TableFit, meas: Measurement, 
         through_px = flagged & ((ev.p_d > 0.5) | (ev.p_c > 0.5))
         if through_px.any():
             frames = frames._replace(z_mean=np.where(through_px, entry, frames.z_mean))
-            meas = measure(frames.z_mean, frames, fit.table, fit.rays, fit.ray_n, params.sensor)
+            meas = measure_again(meas, frames.z_mean, through_px, frames, fit.table, fit.rays, fit.ray_n,
+                                 params.sensor)
             p_d = ev.p_d.copy()  # measured again where moved (the same per-pixel operations, on those pixels only)
             p_d[through_px] = ndtr((nan_to_num(meas.height[through_px]) - fit.h_thr) / meas.s_h[through_px])
             ev = ev._replace(p_d=p_d)

@@ -67,6 +67,19 @@ def measure(z: np.ndarray, frames: AveragedFrames, table: TableFrame, rays: np.n
                        np.sqrt(var) * np.maximum(ray_n, 1e-3))
 
 
+def measure_again(meas: Measurement, z: np.ndarray, changed: np.ndarray, frames: AveragedFrames, table: TableFrame,
+                  rays: np.ndarray, ray_n: np.ndarray, sensor: SensorModel) -> Measurement:
+    """:func:`measure` of depths ``z`` that differ from those ``meas`` was taken of only at the pixels ``changed``:
+    the noise there computed again (the same per-pixel operations), the points and heights of the whole frame."""
+    valid = frames.valid
+    pts = rays * np.where(valid, z, np.nan)[..., None]
+    z_ok = np.where(valid, z, table.offset_m)
+    var, s_h = meas.var_z.copy(), meas.s_h.copy()
+    var[changed] = sensor.variance(z_ok[changed]) / np.maximum(frames.count_eff[changed], 1.0)
+    s_h[changed] = np.sqrt(var[changed]) * np.maximum(ray_n[changed], 1e-3)
+    return Measurement(pts, np.where(valid, pts @ table.n + table.offset_m, np.nan), z_ok, var, s_h)
+
+
 def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
               params: SensingParams) -> tuple[TableFit, Measurement]:
     """The table plane from the whole valid cloud (or as given), its inliers and the depth-evidence threshold

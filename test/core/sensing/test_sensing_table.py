@@ -137,3 +137,28 @@ def test_the_grid_is_sized_by_the_pixel_footprint_under_the_target_whole_frame_o
         m = r.geometry.shape[0]
         assert expect * (1.0 - 1.0 / m) * 0.97 <= r.geometry.resolution <= expect * 1.03
     assert whole.geometry.resolution == pytest.approx(crop.geometry.resolution, rel=0.02)
+
+
+def test_measure_again_equals_measure():
+    from gpis_grasp_ros.core.noise_model import SensorModel
+    from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
+    from gpis_grasp_ros.core.sensing.table import measure, measure_again
+    from gpis_grasp_ros.core.table_frame import TableFrame
+
+    rng = np.random.default_rng(13)
+    intr = CameraIntrinsics(300.0, 310.0, 40.2, 29.7, 80, 60)
+    table = TableFrame.from_plane(0.05, -0.4, -0.91, 0.8)
+    rays = intr.rays()
+    ray_n = np.abs(rays @ table.n)
+    z = rng.uniform(0.5, 1.0, (60, 80))
+    valid = rng.random((60, 80)) < 0.8
+    count = rng.integers(0, 5, (60, 80))
+    frames = AveragedFrames(None, np.where(valid, z, np.nan), count, valid, ~valid, 3.0, count * 0.7)
+    sensor = SensorModel.named('realsense_d400')
+    before = measure(frames.z_mean, frames, table, rays, ray_n, sensor)
+    changed = rng.random((60, 80)) < 0.1
+    z2 = np.where(changed, z + 0.05, frames.z_mean)
+    want = measure(z2, frames, table, rays, ray_n, sensor)
+    got = measure_again(before, z2, changed, frames, table, rays, ray_n, sensor)
+    for g, w in zip(got, want, strict=True):
+        assert np.array_equal(g, w, equal_nan=True)
