@@ -29,7 +29,7 @@ from gpis_grasp_ros.core.sensing.params import (
     PRISM_STEP_M,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, nan_to_num
+from gpis_grasp_ros.core.sensing.pixel_kernels import all_finite, has_label, nan_to_num
 from gpis_grasp_ros.core.sensing.ray_kernels import camera_vector, coarse_to_fine, under_prism
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 from gpis_grasp_ros.core.table_frame import TableFrame
@@ -180,7 +180,7 @@ def _touching_clear_parts(target_px: np.ndarray, missing: np.ndarray, depth_seen
             out |= part
     n, holes = cv2.connectedComponents((missing & (px_labels == 0)).astype(np.uint8), connectivity=8)
     ids = np.unique(holes[cv2.dilate((target_px | out).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0])
-    return out | (np.isin(holes, ids[ids > 0]) & missing)
+    return out | (has_label(holes, ids[ids > 0]) & missing)
 
 
 def _clear_body_cells(under: np.ndarray, depth_seen: np.ndarray, observed: np.ndarray, occupancy: np.ndarray,
@@ -307,5 +307,5 @@ def grow_target(objects: Objects, frames: AveragedFrames, fit: TableFit, meas: M
     # the other objects as obstacles: where the sensor measured their surface (a deterministic solid; their
     # colour-only or no-return parts - a clear neighbour's, or the target's own detached specular fringe - are
     # not measured solids and stay what the target's grid makes of them)
-    others_px = np.isin(px_labels, objects.kept) & (px_labels != target) & ~target_px & valid & (p_d > 0.5)
+    others_px = has_label(px_labels, objects.kept) & (px_labels != target) & ~target_px & valid & (p_d > 0.5)
     return Target(target_px, target_xy, occ, p_c, body_height, clear_target, contact_px, others_px)

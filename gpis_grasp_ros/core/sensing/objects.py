@@ -36,6 +36,7 @@ from gpis_grasp_ros.core.sensing.params import (
 from gpis_grasp_ros.core.sensing.pixel_kernels import (
     all_finite,
     distinct_cells_per_label,
+    has_label,
     mask_bounds,
     nan_to_num,
     raster_cells,
@@ -357,7 +358,7 @@ def clear_object_at(u: int, v: int, px_labels: np.ndarray, clear: np.ndarray, ke
     of changed chromaticity with a core, not running out of the image) and that region touches a clear object,
     whose body :func:`~.clear_body.grow_target` extends over the same kind of pixels. Of several such objects, the
     nearest to the pixel through the region."""
-    is_object = np.isin(px_labels, kept)
+    is_object = has_label(px_labels, kept)
     table_level = np.isfinite(meas.height) & (ev.p_d <= 0.5) & (np.abs(nan_to_num(meas.height)) <= fit.h_thr)
     seed = np.zeros(px_labels.shape, dtype=bool)
     seed[v, u] = True
@@ -415,7 +416,7 @@ def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, 
     else:
         point = np.asarray(params.target_point, dtype=np.float64)
         what = f'target point ({point[0]:.3f}, {point[1]:.3f}) m in the table frame'
-    iy, ix = np.nonzero(np.isin(raster.labels, kept))
+    iy, ix = np.nonzero(has_label(raster.labels, kept))
     centres = raster.origin + (np.stack([ix, iy], axis=1) + 0.5) * raster.res
     dist = np.linalg.norm(centres - point, axis=1)
     if dist.size == 0 or dist.min() > params.target_tolerance_m + raster.res:
@@ -486,7 +487,7 @@ def in_contact(raster: _Raster, px_labels: np.ndarray, foot_xy: np.ndarray, targ
     near = cv2.dilate(mine, np.ones((3, 3), np.uint8)) > 0
     others = ok & (px_labels > 0) & (px_labels != target)
     touching = np.unique(px_labels[others][near[iy[others], ix[others]]])
-    return np.isin(px_labels, touching) if touching.size else np.zeros(px_labels.shape, dtype=bool)
+    return has_label(px_labels, touching) if touching.size else np.zeros(px_labels.shape, dtype=bool)
 
 
 def object_height(height: np.ndarray, seen: np.ndarray, percentile: float = OBJECT_HEIGHT_PERCENTILE,

@@ -79,6 +79,16 @@ def mask_bounds(mask: np.ndarray) -> tuple[int, int, int, int]:
     return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
 
 
+def has_label(labels: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """``np.isin(labels, wanted)`` of non-negative integer labels, by a lookup table over the labels."""
+    wanted = np.asarray(wanted)
+    if labels.size == 0 or wanted.size == 0:
+        return np.zeros(labels.shape, dtype=bool)
+    lut = np.zeros(max(int(labels.max()), int(wanted.max())) + 1, dtype=bool)
+    lut[wanted[wanted >= 0]] = True
+    return lut[labels]
+
+
 def all_finite(x: np.ndarray) -> np.ndarray:
     """``np.isfinite(x).all(axis=-1)``, per component of the last axis."""
     out = np.isfinite(x[..., 0])

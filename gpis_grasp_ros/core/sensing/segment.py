@@ -13,7 +13,7 @@ from gpis_grasp_ros.core.sensing.noise_map import noise_map
 from gpis_grasp_ros.core.sensing.objects import isolate_target, object_height
 from gpis_grasp_ros.core.sensing.occlusion import move_seen_through, place_feet, sensor_shadow
 from gpis_grasp_ros.core.sensing.params import SensingParams, SensingResult
-from gpis_grasp_ros.core.sensing.pixel_kernels import mask_bounds
+from gpis_grasp_ros.core.sensing.pixel_kernels import has_label, mask_bounds
 from gpis_grasp_ros.core.sensing.rasterise import rasterise
 from gpis_grasp_ros.core.sensing.table import fit_table, pixel_footprint
 
@@ -66,7 +66,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         effective_frames=frames.n_eff, objects_seen=objects.objects_seen, mean_depth=frames.z_mean,
         valid_count=frames.count.astype(np.int64), height=meas.height, depth_mask=ev.p_d > 0.5,
         rgb_mask=ev.p_c > 0.5, missing_mask=missing_px, object_mask=target_px,
-        labels_px=np.where(np.isin(objects.px_labels, objects.kept) | target_px, objects.px_labels, 0),
+        labels_px=np.where(has_label(objects.px_labels, objects.kept) | target_px, objects.px_labels, 0),
         occupancy_px=target.occ, noise_px=noise_px,
         disagreement_px=rho, bbox_px=(u_min, v_min, u_max, v_max),
         intrinsics=intrinsics, object_height=object_height(meas.height, target_px & valid & (ev.p_d > 0.5)),

@@ -8,6 +8,7 @@ import pytest
 from gpis_grasp_ros.core.sensing.pixel_kernels import (
     all_finite,
     distinct_cells_per_label,
+    has_label,
     mask_bounds,
     masked_rows,
     max_tangent,
@@ -199,3 +200,10 @@ def test_median_equals_numpy(dtype, n):
             x = x.astype(dtype)
         got, want = median(x), np.median(x)
         assert type(got) is type(want) and np.asarray(got).tobytes() == np.asarray(want).tobytes()
+
+
+def test_has_label_equals_isin():
+    rng = np.random.default_rng(14)
+    labels = rng.integers(0, 40, (30, 50)).astype(np.int32)
+    for wanted in (np.array([3, 7, 39]), np.array([0, 55]), np.zeros(0, np.int64), np.arange(40)):
+        assert np.array_equal(has_label(labels, wanted), np.isin(labels, wanted))
