@@ -235,13 +235,33 @@ def soft_evidence(frames: AveragedFrames, fit: TableFit, meas: Measurement, para
 def combine(ev: Evidence, missing_px: np.ndarray, params: SensingParams) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel occupancy o, the inverse-variance combination of the two masks (missing = object), and the
     disagreement rho = |p_d - p_c| (0 where missing)."""
-    p_d, p_c = ev.p_d, ev.p_c
-    v_d = p_d * (1.0 - p_d) + params.depth_floor_variance
-    v_c = p_c * (1.0 - p_c) + params.color_floor_variance
-    occ = (p_d / v_d + p_c / v_c) / (1.0 / v_d + 1.0 / v_c)
-    rho = np.where(missing_px, 0.0, np.abs(p_d - p_c))
-    occ = np.where(missing_px, 1.0, occ)
+    p_d, p_c = np.asarray(ev.p_d), np.asarray(ev.p_c)
+    if p_d.dtype != np.float64 or p_c.dtype != np.float64 or p_d.shape != p_c.shape:
+        v_d = p_d * (1.0 - p_d) + params.depth_floor_variance
+        v_c = p_c * (1.0 - p_c) + params.color_floor_variance
+        occ = (p_d / v_d + p_c / v_c) / (1.0 / v_d + 1.0 / v_c)
+        return np.where(missing_px, 1.0, occ), np.where(missing_px, 0.0, np.abs(p_d - p_c))
+    p_d, p_c = np.ascontiguousarray(p_d), np.ascontiguousarray(p_c)
+    missing = np.broadcast_to(np.asarray(missing_px, dtype=bool), p_d.shape)
+    occ, rho = np.empty(p_d.shape), np.empty(p_d.shape)
+    _combine(p_d.reshape(-1), p_c.reshape(-1), np.ascontiguousarray(missing).reshape(-1),
+             float(params.depth_floor_variance), float(params.color_floor_variance), occ.reshape(-1), rho.reshape(-1))
     return occ, rho
+
+
+@njit(cache=True, nogil=True, error_model='numpy')
+def _combine(p_d, p_c, missing, floor_d, floor_c, occ, rho):
+    """:func:`combine` per pixel, in the array code's order of operations."""
+    for k in range(p_d.size):
+        if missing[k]:
+            occ[k] = 1.0
+            rho[k] = 0.0
+            continue
+        d, c = p_d[k], p_c[k]
+        v_d = d * (1.0 - d) + floor_d
+        v_c = c * (1.0 - c) + floor_c
+        occ[k] = (d / v_d + c / v_c) / (1.0 / v_d + 1.0 / v_c)
+        rho[k] = abs(d - c)
 
 
 def chromatic_extension(target_px: np.ndarray, candidate: np.ndarray, chroma_z: np.ndarray, z_min: float,

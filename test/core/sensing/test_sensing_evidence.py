@@ -79,3 +79,21 @@ def test_chromaticity_distance_and_shadow_line_equal_the_array_code(seed):
     alpha = np.clip(want_ratio, 0.0, 1.0)
     assert np.array_equal(ratio, want_ratio)
     assert np.array_equal(dist, np.linalg.norm(img - alpha[..., None] * t, axis=-1))
+
+
+@pytest.mark.parametrize('floors', [(0.01, 0.04), (1e-300, 1e-12)])
+def test_combination_equals_the_array_code(floors):
+    from dataclasses import replace
+
+    rng = np.random.default_rng(15)
+    p_d, p_c = rng.random((40, 60)), rng.random((40, 60))
+    p_d[::7, ::3], p_c[::5, ::4], p_d[1, 1], p_c[2, 2] = 0.0, 1.0, np.nan, np.nan
+    missing = rng.random((40, 60)) < 0.2
+    params = replace(SensingParams(), depth_floor_variance=floors[0], color_floor_variance=floors[1])
+    with np.errstate(invalid='ignore', divide='ignore'):
+        v_d = p_d * (1.0 - p_d) + params.depth_floor_variance
+        v_c = p_c * (1.0 - p_c) + params.color_floor_variance
+        occ = np.where(missing, 1.0, (p_d / v_d + p_c / v_c) / (1.0 / v_d + 1.0 / v_c))
+    rho = np.where(missing, 0.0, np.abs(p_d - p_c))
+    got = combine(Evidence(p_d, p_c, None), missing, params)
+    assert np.array_equal(got[0], occ, equal_nan=True) and np.array_equal(got[1], rho, equal_nan=True)
