@@ -53,6 +53,8 @@ import numpy as np
 from numba import njit
 from scipy.stats import chi2
 
+from gpis_grasp_ros.core.median import median
+
 SIGMA_Z_CONSTANT_M = 0.0012
 SIGMA_Z_QUADRATIC_PER_M = 0.0019
 SIGMA_Z_REFERENCE_DEPTH_M = 0.4
@@ -245,7 +247,5 @@ def effective_frame_count(depth_frames: np.ndarray, model: SensorModel, min_pixe
     model_var = model.variance(mean)
     # the median of a sample variance of n Gaussian values is chi2_{n-1} median / (n - 1) of the variance
     unbias = float(chi2.ppf(0.5, n - 1) / (n - 1))
-    from gpis_grasp_ros.core.sensing.pixel_kernels import median  # not at the top: the sensing package imports this
-
     ratio = float(median(s2) / unbias / max(float(median(model_var)), 1e-18))
     return float(1.0 + (n - 1) * min(1.0, ratio))

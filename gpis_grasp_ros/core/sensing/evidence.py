@@ -11,6 +11,7 @@ import numpy as np
 from numba import njit
 from scipy.special import ndtr
 
+from gpis_grasp_ros.core.median import median
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames
 from gpis_grasp_ros.core.sensing.morphology import _filled
 from gpis_grasp_ros.core.sensing.params import (
@@ -20,7 +21,7 @@ from gpis_grasp_ros.core.sensing.params import (
     CHROMA_SMOOTH_PX,
     SensingParams,
 )
-from gpis_grasp_ros.core.sensing.pixel_kernels import mask_bounds, masked_rows, median, nan_to_num, norm_of
+from gpis_grasp_ros.core.sensing.pixel_kernels import mask_bounds, masked_rows, nan_to_num, norm_of
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
 
 

@@ -7,10 +7,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from gpis_grasp_ros.core.median import median
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.params import SUPPORT_MIN_PX, SUPPORT_RADIUS_M, SensingParams
-from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, median, nan_to_num, norm_of
+from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, nan_to_num, norm_of
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
 
 

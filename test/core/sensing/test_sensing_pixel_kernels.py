@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gpis_grasp_ros.core.median import median
 from gpis_grasp_ros.core.sensing.pixel_kernels import (
     all_finite,
     distinct_cells_per_label,
@@ -12,7 +13,6 @@ from gpis_grasp_ros.core.sensing.pixel_kernels import (
     mask_bounds,
     masked_rows,
     max_tangent,
-    median,
     nan_to_num,
     nearer_difference_area,
     norm_of,
