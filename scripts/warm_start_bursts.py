@@ -1,13 +1,13 @@
 """GP-GPIS-OPT cold against warm-started from the previous burst's plan, on every shipped simulated bag.
 
-    python scripts/warm_start_bursts.py [--seeds 3] [--json FILE]
+    python scripts/warm_start_bursts.py [--seeds 3] [--grid-size 25] [--json FILE]
 
-Per bag (bags/*.mcap, bags/head/*.mcap; the paper's 25-cell grid) the frames 0-4 are the previous burst and
-5-9 the new one. Per planner seed: a plan on the previous burst, then on the new burst a cold plan (fresh
-initial grasps) and a plan warm-started from the previous plan's optima (``WarmStart``), each run twice and
-the second timed. Printed per bag: the mean final P_F (S = 1000) of the two, the median planning CPU time
-(``GraspResult.planning_cpu_time``, one BLAS thread), the summed eq. 6 evaluations and the mean number of
-warm starts used.
+Per bag (bags/*.mcap, bags/head/*.mcap; the paper's 25-cell grid, ``--grid-size 0``: the nodes' cell rule) the
+frames 0-4 are the previous burst and 5-9 the new one. Per planner seed: a plan on the previous burst, then on the
+new burst a cold plan (fresh initial grasps) and a plan warm-started from the previous plan's optima
+(``WarmStart``), each run twice and the second timed. Printed per bag: the mean final P_F (S = 1000) of the two,
+the median planning CPU time (``GraspResult.planning_cpu_time``, one BLAS thread), the summed eq. 6 evaluations
+and the mean number of warm starts used.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ from gpis_grasp_ros.data.bags import load_bag
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
 
 
-def bag_rows(path: Path, seeds: int) -> list[dict]:
+def bag_rows(path: Path, seeds: int, grid_size: int = PAPER_GRID_SIZE) -> list[dict]:
     scene = load_bag(path, frames=10)
-    params = SensingParams(grid_size=PAPER_GRID_SIZE)
+    params = SensingParams(grid_size=grid_size)
     posts = [posterior_from_grids(*publishable_grids(segment_frames(
         scene.rgb_frames[k:k + 5], scene.depth_frames[k:k + 5], scene.intrinsics, params, frame_id=scene.frame_id)))
         for k in (0, 5)]
@@ -52,6 +52,7 @@ def bag_rows(path: Path, seeds: int) -> list[dict]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--seeds', type=int, default=3, help='planner seeds 0 .. N-1')
+    ap.add_argument('--grid-size', type=int, default=PAPER_GRID_SIZE, help='M of the planning grid (0: the cell rule)')
     ap.add_argument('--json', type=Path, help='also write every row here')
     args = ap.parse_args()
     rows = []
@@ -59,7 +60,7 @@ def main() -> int:
     print('|---|---:|---:|---:|---:|---:|---:|---:|')
     with threadpool_limits(1):
         for path in sorted(BAGS.glob('*.mcap')) + sorted((BAGS / 'head').glob('*.mcap')):
-            r = bag_rows(path, args.seeds)
+            r = bag_rows(path, args.seeds, args.grid_size)
             rows += r
             col = {k: np.array([x[k] for x in r]) for k in r[0] if k != 'bag'}
             print(f"| {r[0]['bag']} | {col['p_f_cold'].mean():.3f} | {col['p_f_warm'].mean():.3f} | "
