@@ -6,8 +6,9 @@ Per bag (bags/*.mcap, bags/head/*.mcap; the paper's 25-cell grid, ``--grid-size 
 frames 0-4 are the previous burst and 5-9 the new one. Per planner seed: a plan on the previous burst, then on the
 new burst a cold plan (fresh initial grasps) and a plan warm-started from the previous plan's optima
 (``WarmStart``), each run twice and the second timed. Printed per bag: the mean final P_F (S = 1000) of the two,
-the median planning CPU time (``GraspResult.planning_cpu_time``, one BLAS thread), the summed eq. 6 evaluations
-and the mean number of warm starts used.
+the median planning CPU time (``GraspResult.planning_cpu_time``, one BLAS thread), the summed eq. 6 evaluations,
+the mean number of warm starts used, and how far each plan's grasp lies from the previous burst's (mean distance of
+the two jaws in the sensor frame, either jaw order; mm, median over the seeds).
 """
 
 from __future__ import annotations
@@ -19,13 +20,23 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.pipeline import posterior_from_grids, publishable_grids
-from gpis_grasp_ros.core.planners import PlannerParams, WarmStart, plan
+from gpis_grasp_ros.core.planners import GraspResult, PlannerParams, WarmStart, plan
 from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
 from gpis_grasp_ros.core.sensing.params import PAPER_GRID_SIZE
 from gpis_grasp_ros.data.bags import load_bag
 
 BAGS = Path(__file__).resolve().parents[1] / 'bags'
+
+
+def grasp_move_mm(a: GraspResult, ga: GridGeometry, b: GraspResult, gb: GridGeometry) -> float:
+    """Mean distance (mm) of the two jaws of grasps ``a`` and ``b`` (planned on grids ``ga``, ``gb``) in the sensor
+    frame, in whichever jaw order is nearer."""
+    a1, a2, b1, b2 = ga.to_sensor(a.jaw1), ga.to_sensor(a.jaw2), gb.to_sensor(b.jaw1), gb.to_sensor(b.jaw2)
+    same = np.linalg.norm(a1 - b1) + np.linalg.norm(a2 - b2)
+    swap = np.linalg.norm(a1 - b2) + np.linalg.norm(a2 - b1)
+    return float(500.0 * min(same, swap))
 
 
 def bag_rows(path: Path, seeds: int, grid_size: int = PAPER_GRID_SIZE) -> list[dict]:
@@ -45,7 +56,9 @@ def bag_rows(path: Path, seeds: int, grid_size: int = PAPER_GRID_SIZE) -> list[d
                      'p_f_warm': warm.p_f, 'cpu_cold': cold.planning_cpu_time, 'cpu_warm': warm.planning_cpu_time,
                      'evaluations_cold': sum(r.evaluations for r in cold.restarts),
                      'evaluations_warm': sum(r.evaluations for r in warm.restarts),
-                     'warm_starts': sum(r.warm for r in warm.restarts)})
+                     'warm_starts': sum(r.warm for r in warm.restarts),
+                     'moved_cold_mm': grasp_move_mm(before, posts[0].geometry, cold, posts[1].geometry),
+                     'moved_warm_mm': grasp_move_mm(before, posts[0].geometry, warm, posts[1].geometry)})
     return rows
 
 
@@ -56,8 +69,9 @@ def main() -> int:
     ap.add_argument('--json', type=Path, help='also write every row here')
     args = ap.parse_args()
     rows = []
-    print('| bag | P_F cold | P_F warm | CPU cold (s) | CPU warm (s) | evaluations cold | warm | warm starts |')
-    print('|---|---:|---:|---:|---:|---:|---:|---:|')
+    print('| bag | P_F cold | P_F warm | CPU cold (s) | CPU warm (s) | evaluations cold | warm | warm starts '
+          '| moved cold (mm) | moved warm (mm) |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
     with threadpool_limits(1):
         for path in sorted(BAGS.glob('*.mcap')) + sorted((BAGS / 'head').glob('*.mcap')):
             r = bag_rows(path, args.seeds, args.grid_size)
@@ -66,13 +80,18 @@ def main() -> int:
             print(f"| {r[0]['bag']} | {col['p_f_cold'].mean():.3f} | {col['p_f_warm'].mean():.3f} | "
                   f"{np.median(col['cpu_cold']):.3f} | {np.median(col['cpu_warm']):.3f} | "
                   f"{col['evaluations_cold'].sum()} | {col['evaluations_warm'].sum()} | "
-                  f"{col['warm_starts'].mean():.1f} |", flush=True)
+                  f"{col['warm_starts'].mean():.1f} | {np.median(col['moved_cold_mm']):.1f} | "
+                  f"{np.median(col['moved_warm_mm']):.1f} |", flush=True)
     for group, keep in (('top-down', lambda b: not b.startswith('head')), ('head', lambda b: b.startswith('head'))):
         sel = [x for x in rows if keep(x['bag'])]
         ratio = np.median([x['cpu_cold'] / x['cpu_warm'] for x in sel])
         p_cold, p_warm = np.mean([x['p_f_cold'] for x in sel]), np.mean([x['p_f_warm'] for x in sel])
         print(f'{group}: P_F {p_cold:.3f} -> {p_warm:.3f}, planning CPU cold / warm median {ratio:.2f}x, evaluations '
               f"{sum(x['evaluations_cold'] for x in sel)} -> {sum(x['evaluations_warm'] for x in sel)}")
+        for kind in ('cold', 'warm'):
+            moved = np.array([x[f'moved_{kind}_mm'] for x in sel])
+            print(f'  {kind}: grasp moved from the previous burst\'s median {np.median(moved):.1f} mm, within 3 mm '
+                  f'{int((moved <= 3).sum())} / over 10 mm {int((moved > 10).sum())} of {moved.size} plans')
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     return 0

@@ -3,7 +3,7 @@
 A camera-rate loop plans again on every new frame burst of a scene that has barely changed. The previous
 plan's converged local optima are then better starts for SCP than fresh heuristic grasps: each is at (or
 next to) a local optimum of the new objective, and its run resumes with the ℓ1 penalty it ended with, so it
-converges in a few iterations; the grasp does not jump between near-equal optima from one frame to the next.
+converges in a few iterations, and the plan tends to keep the optimum it had (docs/speed.md measures both).
 The optima are kept in the sensor frame, so a table plane or a grid that moved between the frames moves
 nothing in the world.
 
