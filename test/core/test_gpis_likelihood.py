@@ -158,6 +158,50 @@ def test_warm_start_keeps_an_undrifted_fit_and_re_searches_a_drifted_one():
         GpisParams(warm_start_significance=0.0)
 
 
+@pytest.mark.parametrize('seed', range(4))
+def test_constrained_step_is_the_box_minimum_of_the_quadratic_model(seed):
+    """The exact active-set step against a dense search of the box, over random models, points and boxes."""
+    from gpis_grasp_ros.core.gpis.hyperparameters import _constrained_step
+
+    rng = np.random.default_rng(seed)
+    for _ in range(50):
+        a = rng.normal(size=(2, 2))
+        info = a @ a.T + 0.05 * np.eye(2)
+        g = rng.normal(scale=3.0, size=2)
+        lo, hi = -rng.uniform(0.0, 1.0, 2), rng.uniform(0.0, 1.0, 2)
+        x = rng.uniform(lo, hi)
+        d, gain = _constrained_step(x, g, info, lo, hi)
+        assert np.all(x + d >= lo - 1e-12) and np.all(x + d <= hi + 1e-12)
+        assert gain == pytest.approx(-(g @ d + 0.5 * d @ info @ d), abs=1e-12)
+        u, v = np.meshgrid(np.linspace(lo[0], hi[0], 401) - x[0], np.linspace(lo[1], hi[1], 401) - x[1])
+        dd = np.stack([u.ravel(), v.ravel()], axis=1)
+        model = dd @ g + 0.5 * np.einsum('ij,jk,ik->i', dd, info, dd)
+        assert gain >= -model.min() - 1e-12  # no point of the box does better
+        inside = np.all((x + np.linalg.solve(info, -g) >= lo) & (x + np.linalg.solve(info, -g) <= hi))
+        if inside:  # the Newton step: twice its gain is g^T I^-1 g, the unconstrained score statistic
+            assert 2.0 * gain == pytest.approx(g @ np.linalg.solve(info, g), rel=1e-10)
+
+
+def test_warm_start_a_hair_inside_a_binding_bound_is_kept():
+    """A previous l just inside this frame's upper bound, which the likelihood presses against (the bounds follow
+    the grid, which moves a little between bursts): the step to the bound gains almost nothing, so the score
+    test keeps the fit with one evaluation where the unconstrained statistic would re-search."""
+    g, sdf, noise, mask = _disc_scene()
+    params = GpisParams(length_scale_max_extent=0.1)  # the ML l lies beyond 0.1 x extent: the bound binds
+    with gp.blas_threads(1):
+        fc = fit_gpis(sdf, noise, mask, g, params).hyperparameter_fit
+        assert 'length_scale_upper' in fc.bound_hits
+        hair = replace(fc, length_scale=fc.bounds[1][1] * (1.0 - 1e-4))
+        fh = fit_gpis(sdf, noise, mask, g, params, warm_start=hair).hyperparameter_fit
+        assert fh.warm_started and not fh.searched and fh.n_evaluations == 1
+        assert fh.drift_statistic < 0.1
+        assert fh.log_likelihood == pytest.approx(fc.log_likelihood, abs=0.05)
+        # the same start with the bound out of the way: the likelihood's push on l is a real drift
+        wide = replace(params, length_scale_max_extent=1.0)
+        fw = fit_gpis(sdf, noise, mask, g, wide, warm_start=hair).hyperparameter_fit
+        assert fw.warm_started and fw.searched and fw.drift_statistic > chi2.isf(0.05, 2)
+
+
 def test_posterior_from_grids_passes_the_warm_start():
     from gpis_grasp_ros.core.pipeline import posterior_from_grids
     g, sdf, noise, _ = _disc_scene()

@@ -72,11 +72,13 @@ def test_second_frame_is_warm_and_matches_a_cold_fit_a_parameter_change_forces_a
         warm = g.node.last_fit
         assert warm.warm_started and 'hyperparameters warm' in g.status[-1]
         assert warm.n_evaluations < cold_ref.hyperparameter_fit.n_evaluations
-        # the warm fit of the second frame is the cold fit's posterior: on A the score test rejects the first
-        # frame's values (l on its bound) and the local search returns to the cold optimum
+        # on A the first frame's l lies a hair inside the second frame's upper bound, which the likelihood
+        # presses against: the score test (the step stopped at the bound) keeps the first frame's values with
+        # one evaluation, and they are the cold fit's optimum to within S / 2 nats
         ref_fit = cold_ref.hyperparameter_fit
-        assert warm.log_likelihood >= ref_fit.log_likelihood - 1e-3  # the search's stopping gain (nats)
-        np.testing.assert_allclose([warm.signal_variance, warm.length_scale],  # the search stops within 1e-3 nats
+        assert not warm.searched and warm.n_evaluations == 1
+        assert warm.log_likelihood >= ref_fit.log_likelihood - max(warm.drift_statistic, 1e-3)
+        np.testing.assert_allclose([warm.signal_variance, warm.length_scale],
                                    [ref_fit.signal_variance, ref_fit.length_scale], rtol=0.02)
         mean = np.asarray(msg.mean).reshape(cold_ref.mean.shape)
         variance = np.asarray(msg.variance).reshape(cold_ref.mean.shape)

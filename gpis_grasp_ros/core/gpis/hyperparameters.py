@@ -8,6 +8,7 @@ reference it is tested against (:func:`reference_search`).
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from dataclasses import dataclass
@@ -148,25 +149,55 @@ def _free_coordinates(x: np.ndarray, grad: np.ndarray, log_bounds: list[tuple[fl
             if not ((x[i] <= lo + 1e-9 and grad[i] > 0) or (x[i] >= hi - 1e-9 and grad[i] < 0))]
 
 
+def _constrained_step(x: np.ndarray, grad: np.ndarray, info: np.ndarray, lo: np.ndarray,
+                      hi: np.ndarray) -> tuple[np.ndarray, float]:
+    """The step d minimising the quadratic model g^T d + d^T I d / 2 within lo <= x + d <= hi, and the gain -model(d).
+
+    Exact for the two coordinates: every active set (each coordinate free, at its lower or at its upper bound) is
+    solved and the feasible one with the lowest model value kept (the model is convex, so its box minimum is one
+    of them). Raises ``numpy.linalg.LinAlgError`` for a singular ``info``."""
+    n = x.size
+    best_d, best_m = np.zeros(n), 0.0
+    for choice in itertools.product((None, 'lo', 'hi'), repeat=n):
+        d = np.zeros(n)
+        fixed = [i for i, c in enumerate(choice) if c is not None]
+        for i in fixed:
+            d[i] = (lo[i] if choice[i] == 'lo' else hi[i]) - x[i]
+        free = [i for i in range(n) if choice[i] is None]
+        if free:
+            d[free] = -np.linalg.solve(info[np.ix_(free, free)], grad[free] + info[np.ix_(free, fixed)] @ d[fixed])
+        if np.any(x + d < lo - 1e-12) or np.any(x + d > hi + 1e-12):
+            continue
+        m = float(grad @ d + 0.5 * d @ info @ d)
+        if m < best_m:
+            best_d, best_m = d, m
+    return best_d, -best_m
+
+
 def _drift_statistic(x: np.ndarray, grad: np.ndarray, log_bounds: list[tuple[float, float]],
-                     workspace: _LikelihoodWorkspace, noise: np.ndarray) -> tuple[float, int]:
-    """Score statistic g_F^T I_FF^-1 g_F at ``x`` and its degrees of freedom |F|.
+                     workspace: _LikelihoodWorkspace, noise: np.ndarray) -> tuple[float, int, np.ndarray | None]:
+    """Score statistic at ``x``: twice the likelihood gain of the Fisher-scoring step kept within the bounds, its
+    degrees of freedom |F| and the Fisher information I (None when no coordinate is free).
 
     F are the coordinates free to move: a coordinate on a bound whose gradient points out of the
-    box cannot (its Karush-Kuhn-Tucker condition holds). I is the Fisher information. Under the
-    hypothesis that the data are a draw of the GP with these hyperparameters the statistic is
-    chi^2 with |F| degrees of freedom; it is also twice the likelihood gain a Fisher-scoring step
-    predicts.
+    box cannot (its Karush-Kuhn-Tucker condition holds). Away from the bounds the statistic is
+    g_F^T I_FF^-1 g_F, chi^2 with |F| degrees of freedom under the hypothesis that the data are a
+    draw of the GP with these hyperparameters (Rao's score test). Near a bound the step is stopped
+    there (:func:`_constrained_step`): a coordinate a hair inside a bound that the gradient pushes
+    against counts only the gain of the hair's move, as one on the bound counts none (the one-sided
+    score test; its null distribution is a mixture of chi^2 with at most |F| degrees of freedom, so
+    the chi^2(|F|) threshold is conservative).
     """
     free = _free_coordinates(x, grad, log_bounds)
     if not free:
-        return 0.0, 0
-    info = fisher_information(workspace, noise)[np.ix_(free, free)]
-    g = grad[free]
+        return 0.0, 0, None
+    info = fisher_information(workspace, noise)
+    lo, hi = np.array([b[0] for b in log_bounds]), np.array([b[1] for b in log_bounds])
     try:
-        return float(g @ np.linalg.solve(info, g)), len(free)
+        _, gain = _constrained_step(x, grad, info, lo, hi)
     except np.linalg.LinAlgError:  # pragma: no cover - singular information: treat as drifted
-        return math.inf, len(free)
+        return math.inf, len(free), None
+    return 2.0 * gain, len(free), info
 
 
 def _search_setup(geometry: GridGeometry, obs: _Observations, params: GpisParams, eligible: np.ndarray | None,
@@ -231,20 +262,22 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
 
     optima: list[np.ndarray] = []
 
-    def scoring(x: np.ndarray, f: float, g: np.ndarray) -> tuple[np.ndarray, float]:
+    def scoring(x: np.ndarray, f: float, g: np.ndarray, info0: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """Fisher scoring from an evaluated x: d = -I^-1 g over the coordinates free to move, projected into the
         bounds and halved until the likelihood rises, I corrected after each step by the step's gradient change
         (:func:`_secant_corrected`); stops when the predicted gain g^T I^-1 g / 2 is below
-        _SCORING_GAIN nats, after _SCORING_EVALUATIONS evaluations, or in a found optimum's basin."""
+        _SCORING_GAIN nats, after _SCORING_EVALUATIONS evaluations, or in a found optimum's basin. ``info0``: the
+        Fisher information at x if already computed (the score test's)."""
         first = evaluations[0]
-        info, x_last, g_last = None, None, None
+        info, x_last, g_last = info0, None, None
         while evaluations[0] - first < _SCORING_EVALUATIONS:
             free = _free_coordinates(x, g, log_bounds)
             if not free:
                 break
             d = np.zeros(2)
             try:
-                info = _secant_corrected(info, x - x_last, g - g_last) if info is not None else None
+                if x_last is not None:
+                    info = _secant_corrected(info, x - x_last, g - g_last) if info is not None else None
                 if info is None:
                     objective(x)  # the Fisher information is read at x (no evaluation when x was the last one)
                     info = fisher_information(workspace, noise)
@@ -296,14 +329,14 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                        callback=same_basin if optima else None)
         return (res.x, float(res.fun)) if res.fun < _WALL else (x, f)
 
-    warm, drift, searched, f_prev = warm_start is not None and warm_start.ok, math.nan, True, math.inf
+    warm, drift, searched, f_prev, info_prev = warm_start is not None and warm_start.ok, math.nan, True, math.inf, None
     if warm:
         x_prev = np.array([np.clip(math.log(warm_start.signal_variance), *log_bounds[0]),
                            np.clip(math.log(warm_start.length_scale), *log_bounds[1])])
         f_prev, g_prev = objective(x_prev)
         warm = f_prev < _WALL  # no likelihood at the previous values: search cold
         if warm:
-            drift, dof = _drift_statistic(x_prev, g_prev, log_bounds, workspace, noise)
+            drift, dof, info_prev = _drift_statistic(x_prev, g_prev, log_bounds, workspace, noise)
             searched = dof > 0 and drift > chi2.isf(params.warm_start_significance, dof)
     c0, l0 = initial_hyperparameters(geometry, sub.y[:sub.n_values], params, inscribed_radius_m)
     data_start = np.log([np.clip(c0, c_lo, c_hi), np.clip(l0, l_lo, l_hi)])
@@ -325,7 +358,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                 x, fun = lbfgs(x0, f0)
             else:
                 f0, g0 = objective(x0)  # the Fisher information is read at x0 (after a rejected C step)
-                x, fun = scoring(x0, f0, g0)
+                x, fun = scoring(x0, f0, g0, info_prev if warm and np.array_equal(x0, x_prev) else None)
             optima.append(np.array(x))
             if fun < best_f:
                 best_x, best_f = x, fun
