@@ -87,7 +87,7 @@ class _LikelihoodWorkspace:
         n = obs.size
         self.a = np.empty((n, n), order='F')
         self.d = np.empty((n, n), order='F')
-        self.inv: np.ndarray | None = None  # (K + N)^-1 (lower triangle, in a's memory) after an evaluation
+        self.inv: np.ndarray | None = None  # (K + N)^-1 (lower triangle, in a's memory; whole after fisher_information)
         self.log_theta: np.ndarray | None = None  # where inv and d were last evaluated
         self.signal_step = 0.0  # log C* - log C of the last evaluation (profile_signal_variance)
 
@@ -145,26 +145,55 @@ def profile_signal_variance(workspace: _LikelihoodWorkspace) -> float:
     return workspace.signal_step
 
 
+@njit(cache=True, nogil=True)
+def _symmetrise_lower(m):  # pragma: no cover - compiled
+    """Copy the lower triangle of the square matrix ``m`` onto its upper triangle, in place."""
+    n = m.shape[0]
+    for j in range(n):
+        for i in range(j + 1, n):
+            m[j, i] = m[i, j]
+
+
+@njit(cache=True, nogil=True)
+def _fisher_terms(inv, p, noise):  # pragma: no cover - compiled
+    """(sum_ij N_i inv_ij^2 N_j, tr(inv N), tr(P), sum_ij inv_ij N_j P_ji, sum_ij P_ij P_ji) of symmetric ``inv``."""
+    n = noise.size
+    quad = 0.0
+    tr_n = 0.0
+    tr_p = 0.0
+    inp = 0.0
+    pp = 0.0
+    for j in range(n):
+        nj = noise[j]
+        tr_n += nj * inv[j, j]
+        tr_p += p[j, j]
+        for i in range(n):
+            v = inv[i, j]
+            quad += noise[i] * v * v * nj
+            inp += v * nj * p[j, i]
+            pp += p[i, j] * p[j, i]
+    return quad, tr_n, tr_p, inp, pp
+
+
 def fisher_information(workspace: _LikelihoodWorkspace, noise: np.ndarray) -> np.ndarray:
     """Fisher information of (log C, log l), 1/2 tr(A^-1 dA_i A^-1 dA_j), at the last evaluation's hyperparameters.
 
     The covariance of the likelihood's gradient when the data are a draw of the GP (the score
     test of the warm start, :mod:`.hyperparameters`). With M_C = A^-1 (A - N) = I - A^-1 N only
-    M_l = A^-1 dA / dlog l needs a matrix product (one GEMM).
+    M_l = A^-1 dA / dlog l needs a matrix product (one GEMM); the traces are one compiled pass.
+    The workspace's two triangles are made symmetric in place (the next evaluation rewrites them).
     """
     ws = workspace
     if ws.log_theta is None:
         raise ValueError('no successful likelihood evaluation in this workspace')
     c = math.exp(ws.log_theta[0])
-    inv = np.tril(ws.inv)
-    inv += np.tril(inv, -1).T
-    dl = np.tril(ws.d)
-    dl += np.tril(dl, -1).T
-    p = inv @ dl  # A^-1 d k0 / d log l
+    _symmetrise_lower(ws.inv)
+    _symmetrise_lower(ws.d)
+    p = ws.inv @ ws.d  # A^-1 d k0 / d log l
+    quad, tr_n, tr_p, inp, pp = _fisher_terms(ws.inv, p, np.ascontiguousarray(noise, dtype=np.float64))
     n = noise.size
-    diag_inv = np.diagonal(inv)
-    cc = n - 2.0 * float(noise @ diag_inv) + float(noise @ (inv * inv) @ noise)
+    cc = n - 2.0 * tr_n + quad
     # tr(M_C M_l) = C (tr(P) - tr(A^-1 N P)),  tr(A^-1 N P) = sum_ij inv_ij N_j P_ji
-    cl = c * (float(np.trace(p)) - float(np.sum(inv * (noise[None, :] * p.T))))
-    ll = c * c * float(np.sum(p * p.T))
+    cl = c * (tr_p - inp)
+    ll = c * c * pp
     return 0.5 * np.array([[cc, cl], [cl, ll]])
