@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-from scipy.ndimage import distance_transform_edt
+from numba import njit
 
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sdf import signed_distance
@@ -51,6 +51,75 @@ def _extended_regions(mask: np.ndarray) -> np.ndarray:
     return keep[labels]
 
 
+@njit(cache=True, nogil=True)
+def _squared_distances(win, feature_value, out):  # pragma: no cover - compiled
+    """``out`` = squared Euclidean distance (cells, exact integers) of every cell of the boolean ``win`` to the
+    nearest cell whose value is ``feature_value`` (0 on those cells): Felzenszwalb and Huttenlocher's two 1-D
+    passes, the columns' distances then the lower envelope of each row's parabolas. ``win`` holds such a cell."""
+    h, w = win.shape
+    inf = 1e300
+    g = np.empty((h, w))
+    for j in range(w):  # vertical distance to the nearest feature of the column
+        d = inf
+        for i in range(h):
+            d = 0.0 if win[i, j] == feature_value else d + 1.0
+            g[i, j] = d
+        d = inf
+        for i in range(h - 1, -1, -1):
+            d = 0.0 if win[i, j] == feature_value else d + 1.0
+            if d < g[i, j]:
+                g[i, j] = d
+    v = np.empty(w, np.int64)
+    z = np.empty(w + 1)
+    f = np.empty(w)
+    for i in range(h):
+        k = -1
+        for q in range(w):
+            if g[i, q] >= inf:
+                continue
+            f[q] = g[i, q] * g[i, q]
+            while k >= 0:
+                sq = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0 * (q - v[k]))
+                if sq <= z[k]:
+                    k -= 1
+                else:
+                    break
+            k += 1
+            v[k] = q
+            z[k] = -inf if k == 0 else ((f[q] + q * q) - (f[v[k - 1]] + v[k - 1] * v[k - 1])) \
+                / (2.0 * (q - v[k - 1]))
+            z[k + 1] = inf
+        k = 0
+        for q in range(w):
+            while z[k + 1] < q:
+                k += 1
+            out[i, q] = (q - v[k]) * (q - v[k]) + f[v[k]]
+
+
+@njit(cache=True, nogil=True)
+def _window_sdf_kernel(win, inner, e, res, sdf):  # pragma: no cover - compiled
+    """The window's signed distance into ``sdf`` (m, as :func:`~gpis_grasp_ros.core.sdf.signed_distance`); False
+    where an ``inner`` cell's distance exceeds its bound ``e`` (not proven exact)."""
+    h, w = win.shape
+    d_out = np.empty((h, w))
+    d_in = np.empty((h, w))
+    _squared_distances(win, True, d_out)
+    _squared_distances(win, False, d_in)
+    for i in range(h):
+        for j in range(w):
+            if win[i, j]:
+                d = math.sqrt(d_in[i, j])
+                if inner[i, j] and d > e[i, j]:
+                    return False
+                sdf[i, j] = -(d - 0.5) * res
+            else:
+                d = math.sqrt(d_out[i, j])
+                if inner[i, j] and d > e[i, j]:
+                    return False
+                sdf[i, j] = (d - 0.5) * res
+    return True
+
+
 def _window_sdf(padded: np.ndarray, rows: slice, cols: slice, inner: np.ndarray, res: float) -> np.ndarray | None:
     """:func:`~gpis_grasp_ros.core.sdf.signed_distance` of the one-cell-padded occupancy ``padded`` on the window
     (``rows``, ``cols``) of it, exact on the window's cells ``inner`` (bool, window-shaped), or None if not proven so.
@@ -58,12 +127,11 @@ def _window_sdf(padded: np.ndarray, rows: slice, cols: slice, inner: np.ndarray,
     Each distance transform sees only the window's cells (none beyond it is a feature), so a cell's distance d_w is
     its distance to the nearest feature in the window; one outside lies at least e = the cell's axis distance to the
     first row or column beyond the window. Where d_w <= e no feature outside can be nearer, and d_w is the whole
-    grid's distance - the same squared integer distance, so the same float."""
-    win = padded[rows, cols]
+    grid's distance - the same squared integer distance, so the same float (the compiled transform's squared
+    distances are exact integers, as scipy's Euclidean transform's)."""
+    win = np.ascontiguousarray(padded[rows, cols])
     if not win.any() or win.all():  # the window holds no feature of one of the two transforms
         return None
-    dist_outside = distance_transform_edt(~win)
-    dist_inside = distance_transform_edt(win)
     i = np.arange(win.shape[0])[:, None]
     j = np.arange(win.shape[1])[None, :]
     h, w = padded.shape
@@ -72,10 +140,10 @@ def _window_sdf(padded: np.ndarray, rows: slice, cols: slice, inner: np.ndarray,
                                   (cols.start > 0, j + 1.0), (cols.stop < w, win.shape[1] - j)):
         if beyond:
             e = np.minimum(e, axis_distance)
-    dist = np.where(win, dist_inside, dist_outside)
-    if np.any(dist[inner] > e[inner]):
+    sdf = np.empty(win.shape)
+    if not _window_sdf_kernel(win, np.ascontiguousarray(inner), e, float(res), sdf):
         return None
-    return (np.where(win, -(dist_inside - 0.5), dist_outside - 0.5) * float(res)).astype(np.float64)
+    return sdf
 
 
 def _sdf_change_near(occ_bin: np.ndarray, comp: np.ndarray, near: np.ndarray, res: float) -> np.ndarray:
