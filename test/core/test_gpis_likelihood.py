@@ -202,6 +202,32 @@ def test_warm_start_a_hair_inside_a_binding_bound_is_kept():
         assert fw.warm_started and fw.searched and fw.drift_statistic > chi2.isf(0.05, 2)
 
 
+def test_an_inconclusive_score_is_decided_by_the_likelihood_ratio_of_one_step():
+    """Where the score statistic lies between the median of its null distribution and the threshold, the quadratic
+    model may understate the drift: one scoring step is evaluated and its likelihood ratio decides. On the disc (l on
+    its upper bound) C x 1.5, l x 0.97 has S = 5.9 < 5.99 but a step ratio of 8.4: re-searched to the cold optimum;
+    C x 1.05, l x 0.97 (S = 4.3, ratio 4.8) is kept, with the step's evaluation counted; an unchanged scene's fit is
+    kept with one evaluation and no ratio."""
+    g, sdf, noise, mask = _disc_scene()
+    threshold = chi2.isf(0.05, 2)
+    with gp.blas_threads(1):
+        fc = fit_gpis(sdf, noise, mask, g).hyperparameter_fit
+        same = fit_gpis(sdf, noise, mask, g, warm_start=fc).hyperparameter_fit
+        assert not same.searched and same.n_evaluations == 1 and math.isnan(same.drift_ratio)
+        for c_factor, searched in ((1.5, True), (1.05, False)):
+            warm = replace(fc, signal_variance=fc.signal_variance * c_factor, length_scale=fc.length_scale * 0.97)
+            fit = fit_gpis(sdf, noise, mask, g, warm_start=warm).hyperparameter_fit
+            assert chi2.isf(0.5, 2) < fit.drift_statistic <= threshold  # inconclusive
+            assert fit.searched == searched and (fit.drift_ratio > threshold) == searched
+            if searched:
+                assert fit.log_likelihood == pytest.approx(fc.log_likelihood, abs=1e-3)
+            else:
+                assert fit.n_evaluations == 2
+                assert (fit.signal_variance, fit.length_scale) == pytest.approx((warm.signal_variance,
+                                                                                 warm.length_scale), rel=1e-12)
+                assert fc.log_likelihood - fit.log_likelihood < threshold / 2  # what the kept fit gives up
+
+
 def test_posterior_from_grids_passes_the_warm_start():
     from gpis_grasp_ros.core.pipeline import posterior_from_grids
     g, sdf, noise, _ = _disc_scene()

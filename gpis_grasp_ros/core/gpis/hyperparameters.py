@@ -48,8 +48,9 @@ class HyperparameterFit:
     finite likelihood: the search then keeps the start values (logged as an error).
 
     A warm-started fit (``warm_started``) began at a previous fit's C and l; ``drift_statistic`` is
-    the score statistic there and ``searched`` tells whether it exceeded its threshold so that
-    the search ran (docs/gpis-model.md, Warm start).
+    the score statistic there, ``drift_ratio`` the likelihood ratio of one scoring step where that
+    statistic was inconclusive, and ``searched`` tells whether the test rejected the previous values
+    so that the search ran (docs/gpis-model.md, Warm start).
     """
 
     signal_variance: float  # C, m^2
@@ -66,6 +67,7 @@ class HyperparameterFit:
     warm_started: bool = False
     searched: bool = True  # False: a warm start whose previous C and l the score test kept
     drift_statistic: float = math.nan  # score statistic at the warm start (chi^2 with 1-2 dof)
+    drift_ratio: float = math.nan  # likelihood ratio of the scoring step, where the score test was inconclusive
 
 
 def hyperparameter_bounds(geometry: GridGeometry, params: GpisParams,
@@ -330,6 +332,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
         return (res.x, float(res.fun)) if res.fun < _WALL else (x, f)
 
     warm, drift, searched, f_prev, info_prev = warm_start is not None and warm_start.ok, math.nan, True, math.inf, None
+    drift_ratio = math.nan
     if warm:
         x_prev = np.array([np.clip(math.log(warm_start.signal_variance), *log_bounds[0]),
                            np.clip(math.log(warm_start.length_scale), *log_bounds[1])])
@@ -337,7 +340,19 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
         warm = f_prev < _WALL  # no likelihood at the previous values: search cold
         if warm:
             drift, dof, info_prev = _drift_statistic(x_prev, g_prev, log_bounds, workspace, noise)
-            searched = dof > 0 and drift > chi2.isf(params.warm_start_significance, dof)
+            threshold = chi2.isf(params.warm_start_significance, dof) if dof > 0 else math.inf
+            searched = drift > threshold
+            if not searched and info_prev is not None and drift > chi2.isf(0.5, dof):
+                # inconclusive (above the median of its null distribution): the quadratic model the statistic
+                # rests on can understate a drift far from the optimum, so the likelihood of the scoring step
+                # decides, its likelihood ratio against the same threshold (one more evaluation)
+                step, _ = _constrained_step(x_prev, g_prev, info_prev, lo, hi)
+                x_step = np.clip(x_prev + step, lo, hi)
+                f_step = objective(x_step)[0]
+                drift_ratio = 2.0 * (f_prev - f_step) if f_step < _WALL else math.nan
+                searched = drift_ratio > threshold
+                if searched:  # the search goes on from the better point
+                    x_prev, info_prev = x_step, None
     c0, l0 = initial_hyperparameters(geometry, sub.y[:sub.n_values], params, inscribed_radius_m)
     data_start = np.log([np.clip(c0, c_lo, c_hi), np.clip(l0, l_lo, l_hi)])
     random_starts = [np.array([rng.uniform(*log_bounds[0]), rng.uniform(*log_bounds[1])])
@@ -391,7 +406,7 @@ def _fit_hyperparameters(geometry: GridGeometry, obs: _Observations, params: Gpi
                              bounds=bounds, bound_hits=tuple(hits), cholesky_failures=failures[0],
                              failed_starts=failed_starts, n_starts=starts_used, n_observations=sub.size, ok=ok,
                              n_evaluations=evaluations[0], warm_started=warm, searched=searched,
-                             drift_statistic=drift)
+                             drift_statistic=drift, drift_ratio=drift_ratio)
 
 
 def reference_search(geometry: GridGeometry, obs: _Observations, params: GpisParams,

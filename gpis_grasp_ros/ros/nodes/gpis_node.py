@@ -23,6 +23,7 @@ height 0, ``gpis/model`` is published again with the height (same fit, no refit)
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 from collections import OrderedDict
@@ -125,10 +126,14 @@ def hyperparameter_summary(fit: gpis.HyperparameterFit | None) -> str:
     """How a fit's C and l were found, for the log and ``gpis/status``."""
     if fit is None:
         return 'hyperparameters fixed'
+    test = f'score {fit.drift_statistic:.2f}'
+    if math.isfinite(fit.drift_ratio):
+        test += f', likelihood ratio of a step {fit.drift_ratio:.2f}'
     if fit.warm_started and not fit.searched:
-        return f'hyperparameters warm: previous C, l kept (score {fit.drift_statistic:.2f}, 1 likelihood evaluation)'
+        evaluations = 'evaluation' if fit.n_evaluations == 1 else 'evaluations'
+        return f'hyperparameters warm: previous C, l kept ({test}, {fit.n_evaluations} likelihood {evaluations})'
     if fit.warm_started:
-        return (f'hyperparameters warm: re-searched from the previous C, l (score {fit.drift_statistic:.2f}, '
+        return (f'hyperparameters warm: re-searched from the previous C, l ({test}, '
                 f'{fit.n_evaluations} likelihood evaluations)')
     return f'hyperparameters cold search ({fit.n_evaluations} likelihood evaluations, {fit.n_starts} starts)'
 
