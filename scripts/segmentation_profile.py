@@ -44,6 +44,7 @@ REAL_TARGETS = {'cleargrasp_000000080_bottle': (220.8, 160.8), 'cleargrasp_00000
 STAGES = {
     'average frames': ('validate_frames', 'average_frames'),
     'table plane': ('fit_table',),
+    'target window': ('target_point', 'window', 'crop', 'grown', 'uncrop'),
     'soft evidence': ('soft_evidence',),
     'seen-through returns': ('move_seen_through',),
     'sensor shadow': ('sensor_shadow',),

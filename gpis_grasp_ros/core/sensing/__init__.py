@@ -27,13 +27,9 @@ the camera's x, y at the table depth).
 """
 
 from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics, frames_from_clouds
+from gpis_grasp_ros.core.sensing.chroma import chromaticity_distance
 from gpis_grasp_ros.core.sensing.clear_body import clear_body_height, prism_footprint, seen_through
-from gpis_grasp_ros.core.sensing.evidence import (
-    ColourModel,
-    chromatic_extension,
-    chromaticity_distance,
-    shadow_line_distance,
-)
+from gpis_grasp_ros.core.sensing.evidence import ColourModel, chromatic_extension, shadow_line_distance
 from gpis_grasp_ros.core.sensing.morphology import nearest_pixel
 from gpis_grasp_ros.core.sensing.objects import minimum_width, object_height, split_flat_support, split_touching
 from gpis_grasp_ros.core.sensing.occlusion import column_zbuffer, occlusion_shadow_pixels, see_through_pixels

@@ -15,7 +15,6 @@ from gpis_grasp_ros.core.sensing.evidence import (
     Evidence,
     _bounded_extension,
     chromatic_extension,
-    chromaticity_distance,
 )
 from gpis_grasp_ros.core.sensing.morphology import _filled
 from gpis_grasp_ros.core.sensing.objects import Objects, _Raster, clear_labels, in_contact, minimum_width
@@ -238,8 +237,7 @@ def _clear_fragments(target_px: np.ndarray, through: np.ndarray, objects: Object
     it reaches no new one; objects seen in depth stop it as before. The fragments join the target's clear parts
     (:func:`_touching_clear_parts`), not its pixels."""
     raster, px_labels = objects.raster, objects.px_labels
-    chroma_z = (chromaticity_distance(frames.rgb_mean, fit.inlier)[0] if objects.chroma_z is None
-                else objects.chroma_z)  # the target selection's, when it computed them (the same call)
+    chroma_z = fit.chroma_z()  # the whole frame's, computed once
     n_lab = int(px_labels.max()) + 1
     clear = np.zeros(n_lab, dtype=bool)
     clear[clear_labels(px_labels, objects.kept, ev.p_d)] = True

@@ -18,7 +18,6 @@ from gpis_grasp_ros.core.sensing.evidence import (
     Evidence,
     _bounded_extension,
     chromatic_extension,
-    chromaticity_distance,
 )
 from gpis_grasp_ros.core.sensing.morphology import _filled, _flood, _nearest_label, _reconstruct, grid_components
 from gpis_grasp_ros.core.sensing.params import (
@@ -441,6 +440,10 @@ def minimum_width(xy: np.ndarray) -> float:
     return float(extent.min())
 
 
+class TargetCut(ValueError):
+    """The target reaches the border of the image (or of the pixel ROI): its shape is not fully seen."""
+
+
 def _check_target(target_px: np.ndarray, target_xy: np.ndarray, target_raster: np.ndarray, raster_res: float,
                   params: SensingParams, intr: CameraIntrinsics) -> None:
     """Refuse a target cut by the image (or pixel ROI) border, or with no part narrow enough for the gripper.
@@ -453,7 +456,7 @@ def _check_target(target_px: np.ndarray, target_xy: np.ndarray, target_raster: n
         (max(0, params.roi_px[0]), max(0, params.roi_px[1]), min(intr.width - 1, params.roi_px[2]),
          min(intr.height - 1, params.roi_px[3]))
     if u_min < u_lo + b or v_min < v_lo + b or u_max > u_hi - b or v_max > v_hi - b:
-        raise ValueError(f'the target (pixels u {u_min}..{u_max}, v {v_min}..{v_max}) is cut by the image '
+        raise TargetCut(f'the target (pixels u {u_min}..{u_max}, v {v_min}..{v_max}) is cut by the image '
                          'border: its shape is not fully seen (move the camera or the object, or choose another '
                          'target)')
     if params.max_opening_m > 0:
@@ -516,7 +519,6 @@ class Objects(NamedTuple):
     objects_seen: int  # components kept (not specks)
     target_px: np.ndarray  # (H, W) bool, the target's evidence pixels
     kept: np.ndarray  # labels of the objects (components that are not noise, :func:`object_labels`)
-    chroma_z: np.ndarray | None = None  # (H, W) chromaticity z-scores, when the target selection needed them
 
 
 def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarray,
@@ -554,16 +556,16 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
                                           params.min_object_area_m2)
     solid = solid_pixels(height, meas.s_h, on_plane, fit.h_thr, missing_px & evidence, ratio)
     kept = object_labels(px_labels, raster, foot_xy, solid, params)
-    target, objects_seen, chroma_z = 0, int(kept.size), None
+    target, objects_seen = 0, int(kept.size)
     if params.target == 'pixel' and rgb_mean is not None and params.chroma_z_min > 0:
         u, v = (int(round(c)) for c in params.target_point)
         if 0 <= u < w and 0 <= v < h and px_labels[v, u] not in kept:  # not on an object's evidence
             clear = clear_labels(px_labels, kept, ev.p_d)
             if clear.size:
-                chroma_z = chromaticity_distance(rgb_mean, fit.inlier)[0]
-                target = clear_object_at(u, v, px_labels, clear, kept, ev, meas, fit, missing_px, chroma_z, params)
+                target = clear_object_at(u, v, px_labels, clear, kept, ev, meas, fit, missing_px, fit.chroma_z(),
+                                         params)
     if not target:  # on an object's evidence, or the nearest object within target_tolerance_m
         target, objects_seen = _select_target(px_labels, raster, foot_xy, params, intrinsics, kept)
     target_px = px_labels == target
     _check_target(target_px, foot_xy[target_px], raster.labels == target, raster.res, params, intrinsics)
-    return Objects(raster, px_labels, target, objects_seen, target_px, kept, chroma_z)
+    return Objects(raster, px_labels, target, objects_seen, target_px, kept)

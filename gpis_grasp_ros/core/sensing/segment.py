@@ -3,19 +3,26 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
-from gpis_grasp_ros.core.sensing.camera import CameraIntrinsics, average_frames, validate_frames
-from gpis_grasp_ros.core.sensing.clear_body import grow_target
-from gpis_grasp_ros.core.sensing.evidence import combine, soft_evidence
+from gpis_grasp_ros.core.grid import GridGeometry
+from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics, average_frames, validate_frames
+from gpis_grasp_ros.core.sensing.clear_body import Target, grow_target
+from gpis_grasp_ros.core.sensing.evidence import Evidence, combine, soft_evidence
 from gpis_grasp_ros.core.sensing.noise_map import noise_map
-from gpis_grasp_ros.core.sensing.objects import isolate_target, object_height
-from gpis_grasp_ros.core.sensing.occlusion import move_seen_through, place_feet, sensor_shadow
-from gpis_grasp_ros.core.sensing.params import SensingParams, SensingResult
+from gpis_grasp_ros.core.sensing.objects import Objects, TargetCut, isolate_target, object_height
+from gpis_grasp_ros.core.sensing.occlusion import Feet, move_seen_through, place_feet, sensor_shadow
+from gpis_grasp_ros.core.sensing.params import SUPPORT_RADIUS_M, SensingParams, SensingResult
 from gpis_grasp_ros.core.sensing.pixel_kernels import has_label, mask_bounds
-from gpis_grasp_ros.core.sensing.rasterise import rasterise
-from gpis_grasp_ros.core.sensing.table import fit_table, pixel_footprint
+from gpis_grasp_ros.core.sensing.rasterise import grid_around, rasterise
+from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, fit_table, pixel_footprint
+from gpis_grasp_ros.core.sensing.window import crop, grown, square, target_point, uncrop, window
+
+#: Half-side (m) of the table square around a target point whose window is segmented first (window.py): the
+#: table around the target
+WINDOW_HALF_SIDE_M = SUPPORT_RADIUS_M
 
 
 def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: np.ndarray | Sequence[np.ndarray],
@@ -31,7 +38,9 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         frame_id: sensor frame stored in the returned geometry.
 
     Returns:
-        :class:`SensingResult`. The grid lies in the table plane (``geometry.rotation`` = table frame).
+        :class:`SensingResult`. The grid lies in the table plane (``geometry.rotation`` = table frame). For a
+        target point (``target`` ``pixel`` or ``table``) only the target's window of the frame is segmented
+        (:mod:`.window`); the pixel maps are empty outside it.
 
     Raises:
         ValueError: wrong dtype or shape, no valid depth, no table plane (or seen edge-on), no object
@@ -39,6 +48,48 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     """
     frames = average_frames(*validate_frames(rgb_frames, depth_frames, intrinsics), params)
     fit, meas = fit_table(frames, intrinsics, params)
+    point = target_point(fit, intrinsics, params) if WINDOW_HALF_SIDE_M > 0 else None
+    region, box = None if point is None else square(point, WINDOW_HALF_SIDE_M), None
+    while region is not None:  # a target point: segment its window, grown until it holds the target and its grid
+        win = window(fit, meas, region, params)
+        if win is None or win[:4] == box:  # the whole image, or all of it the region can reach
+            break
+        box = win[:4]
+        try:
+            found = find_target(*crop(win, frames, fit, meas, intrinsics, params))
+        except TargetCut:  # by the window's edge (the whole image's edges are checked at the end)
+            region = square(point, region[2] - region[0])
+            continue
+        region = grown(win, found.target.target_px, found.grid, intrinsics, params)
+        if region is None:
+            return uncrop(grid_of(found, frame_id), win, frames, meas, intrinsics)
+    return grid_of(find_target(frames, fit, meas, intrinsics, params), frame_id)
+
+
+class Found(NamedTuple):
+    """The segmentation up to the target: the frames and evidence after the occlusion tests, the objects, the
+    target and the extent of its grid."""
+
+    frames: AveragedFrames
+    fit: TableFit
+    meas: Measurement
+    intrinsics: CameraIntrinsics
+    params: SensingParams
+    ev: Evidence
+    rho: np.ndarray
+    through_px: np.ndarray
+    shadow_px: np.ndarray
+    missing_px: np.ndarray
+    feet: Feet
+    objects: Objects
+    target: Target
+    grid_footprint: float  # m, a pixel's extent on the table under the target
+    grid: GridGeometry
+
+
+def find_target(frames: AveragedFrames, fit: TableFit, meas: Measurement, intrinsics: CameraIntrinsics,
+                params: SensingParams) -> Found:
+    """The stages after the table up to the target and its grid's extent (III-B)."""
     ev = soft_evidence(frames, fit, meas, params)
     frames, meas, ev, through_px = move_seen_through(frames, fit, meas, ev, intrinsics, params)
     footprint = pixel_footprint(frames.z_mean, fit, intrinsics)
@@ -51,8 +102,18 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
     target = grow_target(objects, frames, fit, meas, ev, occ, missing_px, feet, intrinsics, params)
     # the grid is sized by the footprint of a pixel on the table under the target (a crop does not change it)
     grid_footprint = pixel_footprint(feet.hit_points[..., 2], fit, intrinsics, target.target_px)
-    cells = rasterise(target, missing_px, frames, fit, meas, ev.p_d, feet, grid_footprint, intrinsics, params,
-                      frame_id)
+    grid = grid_around(target.target_xy, fit.table, params, '', grid_footprint)
+    return Found(frames, fit, meas, intrinsics, params, ev, rho, through_px, shadow_px, missing_px, feet, objects,
+                 target, grid_footprint, grid)
+
+
+def grid_of(found: Found, frame_id: str) -> SensingResult:
+    """The target's grid: its cells rasterised, their SDF noise, and the pixel maps (III-B)."""
+    frames, fit, meas, params, ev, target, missing_px = (found.frames, found.fit, found.meas, found.params, found.ev,
+                                                         found.target, found.missing_px)
+    objects, rho, feet = found.objects, found.rho, found.feet
+    cells = rasterise(target, missing_px, frames, fit, meas, ev.p_d, feet, found.grid_footprint, found.intrinsics,
+                      params, frame_id)
     noise = noise_map(cells, missing_px, target.target_px, feet.off_hull, params)
 
     valid, target_px, colour = frames.valid, target.target_px, ev.colour
@@ -69,6 +130,6 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         labels_px=np.where(has_label(objects.px_labels, objects.kept) | target_px, objects.px_labels, 0),
         occupancy_px=target.occ, noise_px=noise_px,
         disagreement_px=rho, bbox_px=(u_min, v_min, u_max, v_max),
-        intrinsics=intrinsics, object_height=object_height(meas.height, target_px & valid & (ev.p_d > 0.5)),
-        seen_through_px=through_px, shadow_px=shadow_px, clear_body=cells.body, seen_behind=cells.behind,
+        intrinsics=found.intrinsics, object_height=object_height(meas.height, target_px & valid & (ev.p_d > 0.5)),
+        seen_through_px=found.through_px, shadow_px=found.shadow_px, clear_body=cells.body, seen_behind=cells.behind,
         obstacles=cells.obstacle)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -10,6 +11,7 @@ import numpy as np
 from gpis_grasp_ros.core.median import median
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
+from gpis_grasp_ros.core.sensing.chroma import frame_chromaticity
 from gpis_grasp_ros.core.sensing.params import SUPPORT_MIN_PX, SUPPORT_RADIUS_M, SensingParams
 from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows, nan_to_num, norm_of
 from gpis_grasp_ros.core.table_frame import TableFrame, fit_table_plane
@@ -25,6 +27,7 @@ class TableFit(NamedTuple):
     inlier: np.ndarray  # (H, W) bool, pixels on the plane
     h_thr: float  # m, depth-evidence height threshold
     support: np.ndarray  # (H, W) bool, the inliers of the table around the target (colour model)
+    chroma_z: Callable[[], np.ndarray]  # (H, W) the chromaticity z-scores against the inliers (chroma.py), lazily
 
 
 class Measurement(NamedTuple):
@@ -99,7 +102,7 @@ def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
     rms = float(np.sqrt(np.mean(meas.height[inlier] ** 2)))
     h_thr = max(params.height_threshold, 2.0 * rms)
     support = target_support(inlier, points, table, rays, params)
-    return TableFit(table, rays, ray_n, band, inlier, h_thr, support), meas
+    return TableFit(table, rays, ray_n, band, inlier, h_thr, support, frame_chromaticity(frames.rgb_mean, inlier)), meas
 
 
 def target_support(inlier: np.ndarray, points: np.ndarray, table: TableFrame, rays: np.ndarray,

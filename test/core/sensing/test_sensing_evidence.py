@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from gpis_grasp_ros.core.sensing import SensingParams, shadow_line_distance
-from gpis_grasp_ros.core.sensing.evidence import Evidence, chromaticity_distance, combine
+from gpis_grasp_ros.core.sensing.chroma import chromaticity_distance
+from gpis_grasp_ros.core.sensing.evidence import Evidence, combine
 from gpis_grasp_ros.core.sensing.params import CHROMA_MIN_SIGMA
 
 
