@@ -5,7 +5,8 @@ PR2 head camera), these stages, one module each:
 
 1. :mod:`.camera` - depth averaged per pixel over the frames with a valid return, colour over all frames;
    the independent frames the average is worth measured from their differences.
-2. :mod:`.table` - the table plane (robust fit of the whole cloud, or given), heights along its normal.
+2. :mod:`.table` - the table plane (robust fit of the whole cloud, or given), heights along its normal; for a
+   target point, :mod:`.window` - the part of the frame its grid depends on, where the stages below run.
 3. :mod:`.evidence` - soft depth evidence (height above the plane) and a shadow-proof colour test, combined
    per pixel by inverse variance.
 4. :mod:`.occlusion` - what was not measured: returns seen through a clear part, the sensor's shadow, and

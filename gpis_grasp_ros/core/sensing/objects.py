@@ -41,7 +41,7 @@ from gpis_grasp_ros.core.sensing.pixel_kernels import (
     raster_cells,
 )
 from gpis_grasp_ros.core.sensing.steps import cell_heights, split_height_steps
-from gpis_grasp_ros.core.sensing.table import Measurement, TableFit
+from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, noise_ratio
 
 
 @dataclass
@@ -296,13 +296,6 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
 SOLID_SIGMAS = float(-ndtri(SOLID_FALSE_ALARM))
 
 
-def _noise_ratio(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray) -> float:
-    """The table inliers' measured RMS height over their modelled one (1 without inliers)."""
-    res_h = height[inlier]
-    model = s_h[inlier]
-    return math.sqrt(float(np.mean(res_h ** 2)) / max(float(np.mean(model ** 2)), 1e-18)) if res_h.size else 1.0
-
-
 def solid_pixels(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray, h_thr: float,
                  missing: np.ndarray, ratio: float | None = None) -> np.ndarray:
     """Pixels that are surely not the table: depth-seen more than ``SOLID_SIGMAS`` sigma above it, or ``missing``.
@@ -311,7 +304,7 @@ def solid_pixels(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray, h_thr:
     table inliers' measured RMS height over their modelled one (``ratio``, from ``inlier`` when not given: a
     filtered depth image is less noisy than the model, a rough table or a misfitted plane more); at least the
     depth-evidence threshold ``h_thr``."""
-    ratio = _noise_ratio(height, s_h, inlier) if ratio is None else ratio
+    ratio = noise_ratio(height, s_h, inlier) if ratio is None else ratio
     thr = np.maximum(h_thr, SOLID_SIGMAS * ratio * s_h)
     return (nan_to_num(height, nan=-np.inf) > thr) | missing
 
@@ -544,14 +537,9 @@ def isolate_target(fit: TableFit, meas: Measurement, ev: Evidence, occ: np.ndarr
         x0, y0, x1, y1 = params.roi_table
         fx_, fy_ = foot_xy[..., 0], foot_xy[..., 1]
         evidence &= (fx_ >= x0) & (fx_ <= x1) & (fy_ >= y0) & (fy_ <= y1)
-    # the table's extent is the hull of the inliers' feet, decided by the rim of the inlier region (the feet of
-    # plane points are a projective image of the pixels: interior pixels are never hull vertices)
-    rim = inlier & ~cv2.erode(inlier.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
-                              borderValue=0).astype(bool)
-    inlier_xy = foot_xy[rim]
     on_plane = inlier & (np.abs(nan_to_num(height, nan=np.inf)) <= fit.band)  # not moved by the see-through test
-    ratio = _noise_ratio(height, meas.s_h, on_plane)
-    raster, px_labels = _table_components(foot_xy, evidence, missing_px, inlier_xy, footprint, MISSING_ATTACH_M,
+    ratio = fit.noise_ratio  # the frame's table
+    raster, px_labels = _table_components(foot_xy, evidence, missing_px, fit.rim_xy, footprint, MISSING_ATTACH_M,
                                           np.where(ev.p_d > 0.5, height, np.nan), max(ratio, 1.0) * meas.s_h,
                                           params.min_object_area_m2)
     solid = solid_pixels(height, meas.s_h, on_plane, fit.h_thr, missing_px & evidence, ratio)

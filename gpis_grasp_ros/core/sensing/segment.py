@@ -60,7 +60,7 @@ def segment_frames(rgb_frames: np.ndarray | Sequence[np.ndarray], depth_frames: 
         except TargetCut:  # by the window's edge (the whole image's edges are checked at the end)
             region = square(point, region[2] - region[0])
             continue
-        region = grown(win, found.target.target_px, found.grid, intrinsics, params)
+        region = grown(win, found.target.target_px, found.target.contact_px, found.grid, intrinsics, params)
         if region is None:
             return uncrop(grid_of(found, frame_id), win, frames, meas, intrinsics)
     return grid_of(find_target(frames, fit, meas, intrinsics, params), frame_id)
@@ -92,7 +92,7 @@ def find_target(frames: AveragedFrames, fit: TableFit, meas: Measurement, intrin
     """The stages after the table up to the target and its grid's extent (III-B)."""
     ev = soft_evidence(frames, fit, meas, params)
     frames, meas, ev, through_px = move_seen_through(frames, fit, meas, ev, intrinsics, params)
-    footprint = pixel_footprint(frames.z_mean, fit, intrinsics)
+    footprint = fit.footprint
     shadow_px = sensor_shadow(frames, fit, meas, ev, intrinsics, params, footprint)
     missing_px = frames.missing & ~shadow_px  # the sensor's shadow is table it did not measure, not missing
     occ, rho = combine(ev, missing_px, params)  # missing = object

@@ -6,6 +6,7 @@ import math
 from collections.abc import Callable
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from gpis_grasp_ros.core.median import median
@@ -28,6 +29,9 @@ class TableFit(NamedTuple):
     h_thr: float  # m, depth-evidence height threshold
     support: np.ndarray  # (H, W) bool, the inliers of the table around the target (colour model)
     chroma_z: Callable[[], np.ndarray]  # (H, W) the chromaticity z-scores against the inliers (chroma.py), lazily
+    noise_ratio: float  # the inliers' measured RMS height over the sensor model's (1 without inliers)
+    footprint: float  # m, a pixel's extent on the table at the inliers' median depth (pixel_footprint)
+    rim_xy: np.ndarray  # (K, 2) table frame (m), the feet of the inlier region's rim: the table's extent is their hull
 
 
 class Measurement(NamedTuple):
@@ -86,8 +90,9 @@ def measure_again(meas: Measurement, z: np.ndarray, changed: np.ndarray, frames:
 
 def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
               params: SensingParams) -> tuple[TableFit, Measurement]:
-    """The table plane from the whole valid cloud (or as given), its inliers and the depth-evidence threshold
-    max(``height_threshold``, 2 x the inliers' RMS), and the pixels' heights above it."""
+    """The table plane from the whole valid cloud (or as given), its inliers, the depth-evidence threshold
+    max(``height_threshold``, 2 x the inliers' RMS), the inliers' noise against the sensor model and a pixel's
+    footprint there (statistics of the frame's table, the same for any window of it), and the pixels' heights."""
     valid = frames.valid
     rays = intrinsics.rays()
     points = rays * np.where(valid, frames.z_mean, np.nan)[..., None]
@@ -102,7 +107,26 @@ def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
     rms = float(np.sqrt(np.mean(meas.height[inlier] ** 2)))
     h_thr = max(params.height_threshold, 2.0 * rms)
     support = target_support(inlier, points, table, rays, params)
-    return TableFit(table, rays, ray_n, band, inlier, h_thr, support, frame_chromaticity(frames.rgb_mean, inlier)), meas
+    fit = TableFit(table, rays, ray_n, band, inlier, h_thr, support, frame_chromaticity(frames.rgb_mean, inlier),
+                   noise_ratio(meas.height, meas.s_h, inlier), 0.0, rim_feet(inlier, meas, table))
+    return fit._replace(footprint=pixel_footprint(frames.z_mean, fit, intrinsics)), meas
+
+
+def rim_feet(inlier: np.ndarray, meas: Measurement, table: TableFrame) -> np.ndarray:
+    """Table-frame feet (m) of the rim of the inlier region: the feet of plane points are a projective image of the
+    pixels, so interior pixels are never vertices of their convex hull, the table's extent."""
+    rim = inlier & ~cv2.erode(inlier.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                              borderValue=0).astype(bool)
+    foot = meas.points[rim] - nan_to_num(meas.height[rim])[:, None] * table.n  # p - h n, as place_feet's feet
+    return table.to_table(foot)[0]
+
+
+def noise_ratio(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray) -> float:
+    """The table inliers' measured RMS height over their modelled one ``s_h`` (1 without inliers): a filtered depth
+    image is less noisy than the sensor model, a rough table or a misfitted plane more."""
+    res_h = height[inlier]
+    model = s_h[inlier]
+    return math.sqrt(float(np.mean(res_h ** 2)) / max(float(np.mean(model ** 2)), 1e-18)) if res_h.size else 1.0
 
 
 def target_support(inlier: np.ndarray, points: np.ndarray, table: TableFrame, rays: np.ndarray,

@@ -168,14 +168,15 @@ def crop(win: Window, frames: AveragedFrames, fit: TableFit, meas: Measurement, 
     return frames, fit, meas, intr, dataclasses.replace(params, **changes) if changes else params
 
 
-def grown(win: Window, target_px: np.ndarray, grid: GridGeometry, intrinsics: CameraIntrinsics,
-          params: SensingParams) -> tuple[float, float, float, float] | None:
-    """The larger region a window needs, given the target's pixels (window image) and its grid found in it
-    (``intrinsics`` and ``params`` of the whole image), or None when it holds what the whole frame's segmentation
-    would see: the target ``border_px`` clear of the window's edges that are not the image's (else the region
+def grown(win: Window, target_px: np.ndarray, contact_px: np.ndarray, grid: GridGeometry,
+          intrinsics: CameraIntrinsics, params: SensingParams) -> tuple[float, float, float, float] | None:
+    """The larger region a window needs, given the target's pixels, the pixels of the objects in contact with it
+    (window image) and its grid found in it (``intrinsics`` and ``params`` of the whole image), or None when it holds
+    what the whole frame's segmentation would see: the target and the objects it touches (where they were split from
+    it is decided on both) ``border_px`` clear of the window's edges that are not the image's (else the region
     doubled about its centre) and the grid, a cell around, within the region (else the region extended over it)."""
     x0, y0, x1, y1 = win.region
-    v_min, v_max, u_min, u_max = mask_bounds(target_px)
+    v_min, v_max, u_min, u_max = mask_bounds(target_px | contact_px)
     if touches_edge(win, (u_min, v_min, u_max, v_max), intrinsics, params):
         cx, cy, hx, hy = (x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0
         return (cx - hx, cy - hy, cx + hx, cy + hy)

@@ -8,7 +8,6 @@ import functools
 import numpy as np
 import pytest
 
-from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing import CameraIntrinsics, SensingParams
 from gpis_grasp_ros.core.sensing import segment as seg
 from gpis_grasp_ros.core.sensing.camera import average_frames, validate_frames
@@ -122,15 +121,10 @@ def test_window_holds_every_pixel_whose_ray_or_column_reaches_the_region():
     assert win.shape[0] * win.shape[1] < 0.6 * inside.size
 
 
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    return float((a & b).sum() / max((a | b).sum(), 1))
-
-
 @pytest.mark.parametrize('tilt, long', [(0.0, False), (40.0, False), (40.0, True)])
 def test_window_gives_the_whole_frames_grid(tilt, long, monkeypatch):
-    """With the table plane given (the frame-wide fit), the window's segmentation is the whole frame's up to the
-    statistics the later stages take of the window's table pixels: the same grid, target and occupancy; a long
-    target grows the window; the pixel maps cover the whole image."""
+    """The window's segmentation is the whole frame's: the same grid, noise, cells and target pixels, occupancy
+    within 0.05; a long target grows the window; the pixel maps cover the whole image."""
     rgb, depth, intr, px = _scene(tilt, long=long)
     params = SensingParams(target='pixel', target_point=px, max_opening_m=0.0)
     frames = average_frames(*validate_frames(rgb, depth, intr), params)
@@ -143,37 +137,12 @@ def test_window_gives_the_whole_frames_grid(tilt, long, monkeypatch):
         assert len(windows) >= 2  # the first window cut the bar
     else:
         assert windows[-1].shape[0] * windows[-1].shape[1] < 0.7 * intr.width * intr.height
-    assert win.geometry.shape == whole.geometry.shape
-    assert win.geometry.resolution == pytest.approx(whole.geometry.resolution, rel=0.02)
-    assert abs(win.geometry.origin_x - whole.geometry.origin_x) <= whole.geometry.resolution
-    assert abs(win.geometry.origin_y - whole.geometry.origin_y) <= whole.geometry.resolution
-    assert _iou(win.occupancy >= 0.5, whole.occupancy >= 0.5) >= 0.97
-    assert _iou(win.object_mask, whole.object_mask) >= 0.97
+    assert win.geometry == whole.geometry
+    for name in ('noise_variance', 'missing', 'observed', 'occluded', 'obstacles'):
+        assert np.array_equal(getattr(win, name), getattr(whole, name)), name
+    # 3-9 cells differ by at most 0.031 here (the window's pixels meet fewer of them: their fill and hidden parts)
+    assert np.abs(win.occupancy - whole.occupancy).max() <= 0.05
+    assert np.array_equal(win.occupancy >= 0.5, whole.occupancy >= 0.5)
+    assert np.array_equal(win.object_mask, whole.object_mask) and win.bbox_px == whole.bbox_px
     assert win.object_mask.shape == whole.object_mask.shape == (intr.height, intr.width)
     assert np.array_equal(win.mean_depth[~np.isnan(win.mean_depth)], whole.mean_depth[~np.isnan(whole.mean_depth)])
-
-
-def test_a_crop_holding_the_window_changes_nothing(monkeypatch):
-    """The window's segmentation is that of a crop holding it, to the last bit where the table plane and the
-    frame count (one frame) are the same."""
-    rgb, depth, intr, px = _scene(40.0)
-    rgb, depth = rgb[:1], depth[:1]
-    params = SensingParams(target='pixel', target_point=px, sensor=SensorModel.named('carmine'))
-    frames = average_frames(*validate_frames(rgb, depth, intr), params)
-    plane = fit_table(frames, intr, params)[0].table.plane_coefficients()
-    params = dataclasses.replace(params, table_plane=plane)
-    whole, windows = _windowed(monkeypatch, rgb, depth, intr, params)
-    w = windows[-1]
-    u0, v0 = max(w.u0 - 7, 0), max(w.v0 - 5, 0)
-    sub = (slice(v0, min(w.v1 + 9, intr.height - 1) + 1), slice(u0, min(w.u1 + 4, intr.width - 1) + 1))
-    crop_intr = CameraIntrinsics(intr.fx, intr.fy, intr.cx - u0, intr.cy - v0, rgb[:, sub[0], sub[1]].shape[2],
-                                 rgb[:, sub[0], sub[1]].shape[1])
-    cropped = _segment(rgb[:, sub[0], sub[1]], depth[:, sub[0], sub[1]], crop_intr,
-                       dataclasses.replace(params, target_point=(px[0] - u0, px[1] - v0)), seg.SUPPORT_RADIUS_M,
-                       monkeypatch)
-    assert cropped.geometry.shape == whole.geometry.shape
-    assert cropped.geometry.resolution == pytest.approx(whole.geometry.resolution, rel=1e-12)
-    assert np.allclose(cropped.occupancy, whole.occupancy, atol=1e-12)
-    assert np.allclose(cropped.noise_variance, whole.noise_variance, rtol=1e-9, atol=1e-15)
-    assert np.array_equal(cropped.object_mask, whole.object_mask[sub])
-    assert cropped.objects_seen == whole.objects_seen
