@@ -184,7 +184,7 @@ class SensingResult:
     color_threshold: float  # colour distance threshold used (given or adaptive)
     height_threshold: float  # m, depth-evidence threshold used
     effective_frames: float  # n_eff, independent frames the average is worth
-    objects_seen: int  # evidence components on the table (the target and the others)
+    objects_seen: int  # evidence components on the table (the target and the others; in the window, if any)
     # pixel level
     mean_depth: np.ndarray  # (H, W) m, NaN where missing
     valid_count: np.ndarray  # (H, W) int, valid returns per pixel
@@ -207,6 +207,8 @@ class SensingResult:
     clear_body: np.ndarray | None = None  # (M, M) bool, a clear body's prism cells (object from colour/holes only)
     seen_behind: np.ndarray | None = None  # (M, M) bool, the table seen through a clear body
     obstacles: np.ndarray | None = None  # (M, M) bool, cells mostly another object: where no jaw can be
+    window_px: tuple[int, int, int, int] | None = None  # (u_min, v_min, u_max, v_max) inclusive: the target's window
+    #                                                      segmented (window.py; None = the whole image)
 
     @property
     def sdf(self) -> np.ndarray:

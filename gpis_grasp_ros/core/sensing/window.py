@@ -225,4 +225,5 @@ def uncrop(result: SensingResult, win: Window, frames: AveragedFrames, meas: Mea
         object_mask=place(result.object_mask, False), labels_px=place(result.labels_px, 0),
         occupancy_px=place(result.occupancy_px, 0.0), noise_px=place(result.noise_px, np.nan),
         disagreement_px=place(result.disagreement_px, 0.0),
-        bbox_px=(u0 + win.u0, v0 + win.v0, u1 + win.u0, v1 + win.v0), intrinsics=intrinsics, **opt)
+        bbox_px=(u0 + win.u0, v0 + win.v0, u1 + win.u0, v1 + win.v0), intrinsics=intrinsics,
+        window_px=(win.u0, win.v0, win.u1, win.v1), **opt)

@@ -65,7 +65,16 @@ def target_needs_point(target: str) -> bool:
     return target in ('pixel', 'table')
 
 
+def _window_note(window_px: tuple[int, int, int, int] | None) -> str:
+    """Where the objects were counted: the target's window of the image, if it was not the whole image."""
+    if window_px is None:
+        return ''
+    u0, v0, u1, v1 = window_px
+    return f' in the target\'s {u1 - u0 + 1}x{v1 - v0 + 1} px window'
+
+
 @dataclass(frozen=True)
+
 class BurstConfig:
     """How frames are grouped into one estimate (see :class:`SegmentationNode`)."""
 
@@ -433,7 +442,8 @@ class SegmentationNode(GuardedNode):
         self.noise_pub.publish(messages.numpy_to_float_grid(factory, noise, geometry, header_msg, 'm^2'))
         summary = (f'published {result.geometry.height}x{result.geometry.width} occupancy and noise map from '
                    f'{len(frames)} frames (worth {result.effective_frames:.1f} independent): '
-                   f'{result.objects_seen} object(s) on the table, target {result.geometry.size_m[0] * 1000:.0f} mm '
+                   f'{result.objects_seen} object(s) on the table{_window_note(result.window_px)}, target '
+                   f'{result.geometry.size_m[0] * 1000:.0f} mm '
                    f'grid, table tilt {result.table.tilt_deg:.1f} deg, object height '
                    f'{result.object_height * 1000:.1f} mm, {int(result.missing.sum())} missing cells '
                    f'({why})')
