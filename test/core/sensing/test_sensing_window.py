@@ -145,4 +145,9 @@ def test_window_gives_the_whole_frames_grid(tilt, long, monkeypatch):
     assert np.array_equal(win.occupancy >= 0.5, whole.occupancy >= 0.5)
     assert np.array_equal(win.object_mask, whole.object_mask) and win.bbox_px == whole.bbox_px
     assert win.object_mask.shape == whole.object_mask.shape == (intr.height, intr.width)
+    w = windows[-1]
+    assert whole.window_px is None and win.window_px == (w.u0, w.v0, w.u1, w.v1)
+    outside = np.ones(win.object_mask.shape, bool)
+    outside[w.slices] = False
+    assert not win.depth_mask[outside].any() and not win.labels_px[outside].any()
     assert np.array_equal(win.mean_depth[~np.isnan(win.mean_depth)], whole.mean_depth[~np.isnan(whole.mean_depth)])
