@@ -35,6 +35,7 @@ from gpis_grasp_ros.core.sensing.params import (
 from gpis_grasp_ros.core.sensing.pixel_kernels import (
     all_finite,
     distinct_cells_per_label,
+    feet_box,
     has_label,
     mask_bounds,
     nan_to_num,
@@ -43,22 +44,34 @@ from gpis_grasp_ros.core.sensing.pixel_kernels import (
 from gpis_grasp_ros.core.sensing.steps import cell_heights, split_height_steps
 from gpis_grasp_ros.core.sensing.table import Measurement, TableFit, noise_ratio
 
+#: Cells of the table raster kept around the pixels' feet: beyond any operation's reach from the evidence
+RASTER_PAD_CELLS = 8
+
 
 @dataclass
 class _Raster:
-    """Table-plane raster of the evidence: cell (ix, iy) covers origin + [ix, ix+1) x [iy, iy+1) x res."""
+    """Table-plane raster of the evidence: cell (ix, iy) covers origin + [ix, ix+1) x [iy, iy+1) x res; a part of
+    the lattice from ``lattice`` (m) whose first cell is ``first`` (column, row) of it."""
 
     origin: np.ndarray  # (2,) m
     res: float
     labels: np.ndarray  # (ny, nx) int32 component labels after closing (0 = none)
+    lattice: np.ndarray | None = None  # (2,) m, the lattice's origin (None: origin)
+    first: tuple[int, int] = (0, 0)
     _last: tuple | None = field(default=None, repr=False)  # (xy, its cells): the frame's feet are asked again
 
     def cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(column, row, in the raster) of the cell under each table point ``xy`` (..., 2) (0, 0 outside)."""
         if self._last is not None and self._last[0] is xy:
             return self._last[1]
-        self._last = (xy, raster_cells(xy, self.origin, self.res, self.labels.shape))
+        lattice = self.origin if self.lattice is None else self.lattice
+        self._last = (xy, raster_cells(xy, lattice, self.res, self.labels.shape, self.first))
         return self._last[1]
+
+    def centres(self, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+        """(K, 2) table-frame centres (m) of the cells (``ix``, ``iy``)."""
+        lattice = self.origin if self.lattice is None else self.lattice
+        return lattice + (np.stack([ix + self.first[0], iy + self.first[1]], axis=1) + 0.5) * self.res
 
 
 def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, np.ndarray]:
@@ -241,11 +254,24 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
     while np.prod((hi - lo) / res) > 4e6:
         res *= 1.5
     nx, ny = (int(v) + 1 for v in np.ceil((hi - lo) / res))
-    raster = _Raster(lo, res, np.zeros((ny, nx), np.int32))
+    # the lattice over the table's extent, held where the pixels' feet are (a window's part of the table), with
+    # RASTER_PAD_CELLS around them: the same cells as the whole frame's raster
+    x0, y0, x1, y1 = feet_box(foot_xy)
+    if not (math.isfinite(x0) and math.isfinite(y0)):
+        x0, y0, x1, y1 = lo[0], lo[1], hi[0], hi[1]
+    k0 = (int(np.clip(math.floor((x0 - lo[0]) / res) - RASTER_PAD_CELLS, 0, nx)),
+          int(np.clip(math.floor((y0 - lo[1]) / res) - RASTER_PAD_CELLS, 0, ny)))
+    k1 = (int(np.clip(math.floor((x1 - lo[0]) / res) + 1 + RASTER_PAD_CELLS, k0[0] + 1, nx)),
+          int(np.clip(math.floor((y1 - lo[1]) / res) + 1 + RASTER_PAD_CELLS, k0[1] + 1, ny)))
+    if k0 == (0, 0) and k1 == (nx, ny):
+        raster = _Raster(lo, res, np.zeros((ny, nx), np.int32))
+    else:
+        raster = _Raster(lo + np.array(k0) * res, res, np.zeros((k1[1] - k0[1], k1[0] - k0[0]), np.int32), lo, k0)
+    nx, ny = k1[0] - k0[0], k1[1] - k0[1]
     # the table's extent: convex hull of its inliers (in raster cell units)
     hull = cv2.convexHull(((inlier_xy - lo) / res).astype(np.float32))
     extent = np.zeros((ny, nx), np.uint8)
-    cv2.fillConvexPoly(extent, np.round(hull).astype(np.int32), 1)
+    cv2.fillConvexPoly(extent, np.round(hull).astype(np.int32) - np.array(k0, np.int32), 1)
     extent = cv2.erode(extent, np.ones((5, 5), np.uint8))  # the rounded hull's rim (2 cells) is not surely table
     ix, iy, ok = raster.cell(foot_xy)
     use = evidence & ok & (extent[iy, ix] > 0)
@@ -409,7 +435,7 @@ def _select_target(px_labels: np.ndarray, raster: _Raster, foot_xy: np.ndarray, 
         point = np.asarray(params.target_point, dtype=np.float64)
         what = f'target point ({point[0]:.3f}, {point[1]:.3f}) m in the table frame'
     iy, ix = np.nonzero(has_label(raster.labels, kept))
-    centres = raster.origin + (np.stack([ix, iy], axis=1) + 0.5) * raster.res
+    centres = raster.centres(ix, iy)
     dist = np.linalg.norm(centres - point, axis=1)
     if dist.size == 0 or dist.min() > params.target_tolerance_m + raster.res:
         near = '' if dist.size == 0 else f' (nearest object {dist.min() * 1000:.0f} mm away)'

@@ -97,26 +97,27 @@ def all_finite(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def raster_cells(xy: np.ndarray, origin: np.ndarray, res: float, shape: tuple[int, int]
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(column, row, inside) of the raster cell ``floor((xy - origin) / res)`` under each table point ``xy``
-    (..., 2) (m) of a raster of ``shape`` (rows, columns); (0, 0, False) outside it or where ``xy`` is not finite."""
+def raster_cells(xy: np.ndarray, origin: np.ndarray, res: float, shape: tuple[int, int],
+                 first: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(column, row, inside) of the raster cell ``floor((xy - origin) / res) - first`` under each table point
+    ``xy`` (..., 2) (m) of a raster of ``shape`` (rows, columns) whose first cell is ``first`` (column, row) of the
+    lattice from ``origin``; (0, 0, False) outside it or where ``xy`` is not finite."""
     pts = np.ascontiguousarray(xy, dtype=np.float64)
     lead = pts.shape[:-1]
     ix, iy, ok = _raster_cells(pts.reshape(-1, 2), float(origin[0]), float(origin[1]), float(res), int(shape[1]),
-                               int(shape[0]))
+                               int(shape[0]), float(first[0]), float(first[1]))
     return ix.reshape(lead), iy.reshape(lead), ok.reshape(lead)
 
 
 @njit(cache=True, nogil=True)
-def _raster_cells(xy, o0, o1, res, nx, ny):
+def _raster_cells(xy, o0, o1, res, nx, ny, first_x, first_y):
     n = xy.shape[0]
     ix = np.zeros(n, np.int64)
     iy = np.zeros(n, np.int64)
     ok = np.zeros(n, np.bool_)
     for k in range(n):
-        a = np.floor((xy[k, 0] - o0) / res)
-        b = np.floor((xy[k, 1] - o1) / res)
+        a = np.floor((xy[k, 0] - o0) / res) - first_x
+        b = np.floor((xy[k, 1] - o1) / res) - first_y
         if math.isfinite(a) and math.isfinite(b) and 0.0 <= a < nx and 0.0 <= b < ny:
             ix[k] = int(a)
             iy[k] = int(b)
@@ -265,3 +266,21 @@ def _distinct_cells(labels, cells, owner, count):
         elif owner[c] != labels[k] + 1:
             return False
     return True
+
+
+def feet_box(xy: np.ndarray) -> tuple[float, float, float, float]:
+    """(x_min, y_min, x_max, y_max) of the points ``xy`` (..., 2) whose coordinates are both finite (infinities
+    when there are none)."""
+    return _feet_box(np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2))
+
+
+@njit(cache=True, nogil=True)
+def _feet_box(xy):
+    x0 = y0 = np.inf
+    x1 = y1 = -np.inf
+    for k in range(xy.shape[0]):
+        x, y = xy[k, 0], xy[k, 1]
+        if math.isfinite(x) and math.isfinite(y):
+            x0, x1 = min(x0, x), max(x1, x)
+            y0, y1 = min(y0, y), max(y1, y)
+    return x0, y0, x1, y1

@@ -124,6 +124,19 @@ def test_raster_cells_match_the_array_code():
             assert got.dtype == want.dtype and np.array_equal(got, want)
 
 
+def test_raster_cells_of_a_part_of_the_lattice_are_the_whole_rasters_shifted():
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(-0.05, 0.35, size=(60, 2))
+    xy[:5] = np.round(xy[:5] / 0.01) * 0.01  # on cell edges
+    origin = np.array([0.0, 0.02])
+    ix, iy, ok = raster_cells(xy, origin, 0.01, (50, 20))
+    for first, shape in (((3, 7), (20, 11)), ((0, 0), (50, 20)), ((12, 2), (1, 1))):
+        sx, sy, sok = raster_cells(xy, origin, 0.01, shape, first)
+        inside = ok & (ix >= first[0]) & (ix < first[0] + shape[1]) & (iy >= first[1]) & (iy < first[1] + shape[0])
+        assert np.array_equal(sok, inside)
+        assert np.array_equal(sx[sok], ix[sok] - first[0]) and np.array_equal(sy[sok], iy[sok] - first[1])
+
+
 def test_group_max_matches_maximum_at():
     rng = np.random.default_rng(9)
     keys = rng.integers(0, 17, 500)
