@@ -55,3 +55,19 @@ def test_pf_is_a_bench_suite() -> None:
     assert bench.SUITES['pf'] == 'gpis_grasp_ros.tools.bench_pf'
     for bag in ('A_tape_dispenser', 'head/A_tape_dispenser'):
         assert (bench_pf.BAG_DIR / f'{bag}.mcap').is_file()
+
+
+def test_whole_frame_target_pixel_is_the_largest_object_in_its_window() -> None:
+    """The bench's target-pixel row (the principal point) selects the object the largest-object row does (its table
+    colour learnt around it, so a few edge pixels differ), segmented in its window of the frame."""
+    from gpis_grasp_ros.core.sensing import SensingParams, segment_frames
+
+    rgb, depth, intr = bench_e2e.whole_frame_scene(480, 360, frames=1)
+    largest = segment_frames(rgb, depth, intr, SensingParams())
+    at_pixel = segment_frames(rgb, depth, intr, SensingParams(target='pixel', target_point=(intr.cx, intr.cy)))
+    assert largest.window_px is None and at_pixel.window_px is not None
+    u0, v0, u1, v1 = at_pixel.window_px
+    assert (u1 - u0 + 1) * (v1 - v0 + 1) < 0.5 * intr.width * intr.height
+    both, either = largest.object_mask & at_pixel.object_mask, largest.object_mask | at_pixel.object_mask
+    assert both.sum() >= 0.98 * either.sum()
+    assert at_pixel.geometry.shape == largest.geometry.shape
