@@ -24,7 +24,8 @@ The planning grid is the paper's M = 25 (the camera-rate targets are set there);
 segmentation_node's default, the 3 mm cell rule (M = 30-100 on the shipped bags).
 
 Rows: a top-down bag, a head-camera bag, a real D435 capture, and whole-frame segmentation (no crop) of
-simulated 640 x 480 and 1280 x 720 frames, of the largest object and of the object at a target pixel (its window). The machine may be shared: the load average is printed with the table.
+simulated 640 x 480 and 1280 x 720 frames, of the largest object and of the object at a target pixel (its window).
+The machine may be shared: the load average is printed with the table.
 """
 
 from __future__ import annotations
