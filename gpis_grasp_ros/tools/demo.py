@@ -278,12 +278,15 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         return 130
     finally:
-        # in order: the player's thread and publishers, the executor (and its spinning thread), the nodes
+        # in order: the player's thread, the executor (and its spinning thread), then the player's publishers and
+        # the nodes - nothing the executor may be waiting on is destroyed while it spins
         if player is not None:
-            player.destroy()
+            player.stop()
         executor.shutdown()
         if spinner is not None:
             spinner.join(timeout=5.0)
+        if player is not None:
+            player.destroy()
         for n in reversed(nodes):
             n.destroy_node()
         rclpy.try_shutdown()
