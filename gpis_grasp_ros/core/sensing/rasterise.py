@@ -179,15 +179,14 @@ class Cells(NamedTuple):
 
 def rasterise(target: Target, missing_px: np.ndarray, frames: AveragedFrames, fit: TableFit, meas: Measurement,
               p_d: np.ndarray, feet: Feet, footprint: float, intrinsics: CameraIntrinsics, params: SensingParams,
-              frame_id: str) -> Cells:
-    """Every pixel averaged into the cell under its foot, weighted by the table area its foot covers; other
-    objects' pixels count as table (uncertain where the object touches the target).
+              geometry: GridGeometry) -> Cells:
+    """Every pixel averaged into the cell of ``geometry`` (:func:`grid_around`) under its foot, weighted by the table
+    area its foot covers; other objects' pixels count as table (uncertain where the object touches the target).
     Cells no pixel reaches take their centre's image pixel if it sees the table
     there, else they are occluded; the part of a cell hidden behind an object counts as table."""
     valid, height, var_z, h_thr = frames.valid, meas.height, meas.var_z, fit.h_thr
     foot_xy, target_px, occ, p_c = feet.foot_xy, target.target_px, target.occ, target.p_c
     h, w = valid.shape
-    geometry = grid_around(target.target_xy, fit.table, params, frame_id, footprint)
     m = geometry.width
     res = geometry.resolution
     col = np.floor((foot_xy[..., 0] - geometry.origin_x) / res)

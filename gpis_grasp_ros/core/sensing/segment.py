@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -113,7 +114,7 @@ def grid_of(found: Found, frame_id: str) -> SensingResult:
                                                          found.target, found.missing_px)
     objects, rho, feet = found.objects, found.rho, found.feet
     cells = rasterise(target, missing_px, frames, fit, meas, ev.p_d, feet, found.grid_footprint, found.intrinsics,
-                      params, frame_id)
+                      params, dataclasses.replace(found.grid, frame_id=frame_id))
     noise = noise_map(cells, missing_px, target.target_px, feet.off_hull, params)
 
     valid, target_px, colour = frames.valid, target.target_px, ev.colour

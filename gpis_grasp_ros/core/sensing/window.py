@@ -3,13 +3,13 @@
 A grid around a target point (``target`` ``pixel`` or ``table``) depends on what stands on the table near that
 point and on what hides that table from the camera: the pixels whose ray meets the table in a rectangle of the
 table plane around the point, and those whose point's column - from its foot on the table to where its ray meets
-the table, the stretch of table it hides - crosses the rectangle. Their bounding box is the window. Segmentation
-of the window is that of the whole frame restricted to what the target's grid can see, with the whole frame's
-table plane, depth-evidence threshold, colour support and frame count. The rectangle starts as the square of
-half-side :data:`~.params.SUPPORT_RADIUS_M` around the point (the table around the target whose colour the objects
-stand out from) and grows until the target is not cut by the window and its grid lies in the rectangle
-(:func:`~.segment.segment_frames`). A crop of the frame that holds the window changes nothing; the work follows the
-window, not the frame.
+the table, the stretch of table it hides - crosses the rectangle. Their bounding box is the window. The stages after
+the table run on the window with everything the table fit took of the whole frame (:class:`~.table.TableFit`: plane,
+thresholds, colour support, noise, footprint, extent, chromaticity), so the window's grid is the whole frame's up to
+a few cells. The rectangle starts as the square of half-side :data:`~.params.SUPPORT_RADIUS_M` around the point (the
+table around the target whose colour the objects stand out from) and grows until neither the target nor an object
+in contact with it is cut by the window and the target's grid lies in the rectangle
+(:func:`~.segment.segment_frames`). The work follows the window, not the frame.
 """
 
 from __future__ import annotations
@@ -148,8 +148,8 @@ def _region_box(rays, points, height, n, offset, ax, ay, x0, y0, x1, y1, h_max):
 def crop(win: Window, frames: AveragedFrames, fit: TableFit, meas: Measurement, intrinsics: CameraIntrinsics,
          params: SensingParams) -> tuple[AveragedFrames, TableFit, Measurement, CameraIntrinsics, SensingParams]:
     """The frames, table fit, measurement, intrinsics (principal point shifted) and parameters (target pixel and
-    pixel ROI shifted) of the window: what segmentation of a crop at the window sees, with the whole frame's
-    table plane, depth-evidence threshold, colour support, chromaticity statistics and independent frame count."""
+    pixel ROI shifted) of the window: what segmentation of a crop at the window sees, with the whole frame's table
+    fit (its statistics of the frame's table) and independent frame count."""
     sl = win.slices
     frames = frames._replace(rgb_mean=frames.rgb_mean[sl], z_mean=frames.z_mean[sl], count=frames.count[sl],
                              valid=frames.valid[sl], missing=frames.missing[sl], count_eff=frames.count_eff[sl])
