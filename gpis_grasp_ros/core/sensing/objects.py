@@ -50,28 +50,25 @@ RASTER_PAD_CELLS = 8
 
 @dataclass
 class _Raster:
-    """Table-plane raster of the evidence: cell (ix, iy) covers origin + [ix, ix+1) x [iy, iy+1) x res; a part of
-    the lattice from ``lattice`` (m) whose first cell is ``first`` (column, row) of it."""
+    """Table-plane raster of the evidence: the part of the lattice from ``origin`` whose first cell is ``first``
+    (column, row); cell (ix, iy) covers origin + [ix + first_x, ix + first_x + 1) x [...] x res."""
 
-    origin: np.ndarray  # (2,) m
+    origin: np.ndarray  # (2,) m, the lattice's origin
     res: float
     labels: np.ndarray  # (ny, nx) int32 component labels after closing (0 = none)
-    lattice: np.ndarray | None = None  # (2,) m, the lattice's origin (None: origin)
-    first: tuple[int, int] = (0, 0)
+    first: tuple[int, int] = (0, 0)  # the lattice cell (column, row) of labels[0, 0]
     _last: tuple | None = field(default=None, repr=False)  # (xy, its cells): the frame's feet are asked again
 
     def cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(column, row, in the raster) of the cell under each table point ``xy`` (..., 2) (0, 0 outside)."""
         if self._last is not None and self._last[0] is xy:
             return self._last[1]
-        lattice = self.origin if self.lattice is None else self.lattice
-        self._last = (xy, raster_cells(xy, lattice, self.res, self.labels.shape, self.first))
+        self._last = (xy, raster_cells(xy, self.origin, self.res, self.labels.shape, self.first))
         return self._last[1]
 
     def centres(self, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
         """(K, 2) table-frame centres (m) of the cells (``ix``, ``iy``)."""
-        lattice = self.origin if self.lattice is None else self.lattice
-        return lattice + (np.stack([ix + self.first[0], iy + self.first[1]], axis=1) + 0.5) * self.res
+        return self.origin + (np.stack([ix + self.first[0], iy + self.first[1]], axis=1) + 0.5) * self.res
 
 
 def split_touching(labels: np.ndarray, neck_cells: float) -> tuple[np.ndarray, np.ndarray]:
@@ -263,10 +260,7 @@ def _table_components(foot_xy: np.ndarray, evidence: np.ndarray, missing: np.nda
           int(np.clip(math.floor((y0 - lo[1]) / res) - RASTER_PAD_CELLS, 0, ny)))
     k1 = (int(np.clip(math.floor((x1 - lo[0]) / res) + 1 + RASTER_PAD_CELLS, k0[0] + 1, nx)),
           int(np.clip(math.floor((y1 - lo[1]) / res) + 1 + RASTER_PAD_CELLS, k0[1] + 1, ny)))
-    if k0 == (0, 0) and k1 == (nx, ny):
-        raster = _Raster(lo, res, np.zeros((ny, nx), np.int32))
-    else:
-        raster = _Raster(lo + np.array(k0) * res, res, np.zeros((k1[1] - k0[1], k1[0] - k0[0]), np.int32), lo, k0)
+    raster = _Raster(lo, res, np.zeros((k1[1] - k0[1], k1[0] - k0[0]), np.int32), k0)
     nx, ny = k1[0] - k0[0], k1[1] - k0[1]
     # the table's extent: convex hull of its inliers (in raster cell units)
     hull = cv2.convexHull(((inlier_xy - lo) / res).astype(np.float32))
