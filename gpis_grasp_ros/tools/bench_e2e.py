@@ -7,7 +7,8 @@ threadpoolctl, as the GPIS fit sets it itself): segmentation = ``segment_frames`
 (:func:`~gpis_grasp_ros.core.pipeline.publishable_grids`), GPIS = ``posterior_from_grids`` with the
 maximum-likelihood search (and, as "of which search", that time minus a fit with C and l fixed at the values
 found), GP-GPIS-OPT = the planner's planning time (``GraspResult.planning_time``, N_g = 20), final P_F = its
-evaluation time (S = 1000 fresh joint samples and the Monte-Carlo test), end to end = the wall time of the whole
+evaluation time (what follows the search: the S = 1000 fresh joint samples are drawn on the other core during it,
+then the Monte-Carlo test), end to end = the wall time of the whole
 chain (and its CPU time, less sensitive to a shared machine's load). ``--repeats`` runs of every stage after one
 warm-up chain (which also loads the compiled kernels); the table gives median and min (s).
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -12,6 +13,8 @@ from gpis_grasp_ros.core.gpis.hyperparameters import HyperparameterFit
 from gpis_grasp_ros.core.gpis.kernel import KernelParams, _cross_joint
 from gpis_grasp_ros.core.gpis.observations import _Observations
 from gpis_grasp_ros.core.grid import GridGeometry
+
+_FACTOR_LOCK = threading.Lock()  # guards the float32 factor's one-time construction
 
 
 @dataclass
@@ -90,14 +93,15 @@ class GpisPosterior:
             return eps @ self.cov_factor.T
         if np.dtype(dtype) != np.float32:
             raise ValueError(f'deviations are float64 or float32, not {np.dtype(dtype)}')
-        if self._cov_factor_t32 is None:
-            factor = self.cov_factor
-            # the factor of a full-rank basis is the square triangle of a QR factorisation (gpis.basis): the
-            # triangular product (TRMM) skips the zero triangle, half the GEMM's multiplications
-            self._cov_factor_lower = bool(factor.ndim == 2 and factor.shape[0] == factor.shape[1] > 0
-                                          and not np.triu(factor, 1).any())
-            self._cov_factor_t32 = (np.asfortranarray(factor, dtype=np.float32) if self._cov_factor_lower
-                                    else np.ascontiguousarray(factor.T, dtype=np.float32))
+        with _FACTOR_LOCK:  # a planner's samples and its final P_F's may be drawn on two threads at once
+            if self._cov_factor_t32 is None:
+                factor = self.cov_factor
+                # the factor of a full-rank basis is the square triangle of a QR factorisation (gpis.basis): the
+                # triangular product (TRMM) skips the zero triangle, half the GEMM's multiplications
+                self._cov_factor_lower = bool(factor.ndim == 2 and factor.shape[0] == factor.shape[1] > 0
+                                              and not np.triu(factor, 1).any())
+                self._cov_factor_t32 = (np.asfortranarray(factor, dtype=np.float32) if self._cov_factor_lower
+                                        else np.ascontiguousarray(factor.T, dtype=np.float32))
         if self._cov_factor_lower:  # (L eps^T)^T: eps^T is eps's Fortran view, the result's transpose C-ordered
             return strmm(1.0, self._cov_factor_t32, eps.astype(np.float32).T, side=0, lower=1, overwrite_b=1).T
         return eps.astype(np.float32) @ self._cov_factor_t32

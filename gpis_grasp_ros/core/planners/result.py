@@ -52,7 +52,9 @@ class GraspResult:
     the mean SDF (NaN if the grasp is degenerate there); ``p_f`` ± ``p_f_std_error`` the
     Monte-Carlo P_F on the evaluation samples; ``objective`` the method's own criterion (Q_F for
     GP-M, selection P̂_F for GP-P, eq. 4/6 value for the optimisers, MC P_F when re-ranked);
-    ``iterations`` total SCP iterations (0 for sampling planners).
+    ``iterations`` total SCP iterations (0 for sampling planners); ``planning_time`` the search's wall time (s),
+    ``evaluation_time`` what the final P_F took after it (the evaluation samples are drawn on another thread during
+    the search, so mostly the Monte-Carlo test).
     """
 
     method: str
@@ -76,7 +78,8 @@ class GraspResult:
     restarts: list[RestartInfo] = field(default_factory=list)
     seed: int | None = None
     stopped: str = ''  # reason a PlanControl stopped the plan ('' when it ran to the end)
-    planning_cpu_time: float = float('nan')  # CPU time (s, process-wide) of the planning part (less load-dependent)
+    planning_cpu_time: float = float('nan')  # CPU time (s) of the planning part, the final P_F's sampling thread not
+    # counted (less load-dependent than the wall time)
 
 
 @dataclass(frozen=True)
