@@ -148,11 +148,21 @@ def _refine(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, float]
     return normal, float(-normal @ centroid)
 
 
+@njit(cache=True, nogil=True)
+def _usable_points(cloud, mask, out):
+    """``out`` = ``mask`` and the point finite and in front of the camera (z > 0), for every row of ``cloud``."""
+    for k in range(cloud.shape[0]):
+        x, y, z = cloud[k, 0], cloud[k, 1], cloud[k, 2]
+        out[k] = mask[k] and np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and z > 0
+
+
 def fit_table_plane(points: np.ndarray, model: SensorModel, *, band_sigmas: float = 3.0, band_floor_m: float = 0.002,
                     iterations: int = 300, min_iterations: int = 50, max_points: int = 10000,
                     score_points: int = 2000, min_inlier_fraction: float = 0.2, max_tilt_deg: float = 75.0,
-                    seed: int = 0) -> TableFrame:
-    """Robust plane fit (MSAC + least squares) to camera-frame points ``(K, 3)`` (m).
+                    seed: int = 0, mask: np.ndarray | None = None) -> TableFrame:
+    """Robust plane fit (MSAC + least squares) to camera-frame points ``(K, 3)`` (m), or to those of an organised
+    cloud ``(H, W, 3)`` where ``mask`` ``(H, W)`` holds (the same fit as of ``points[mask]``: the sample is drawn
+    among the mask's pixels before their points are gathered).
 
     The inlier band of a point at depth z is max(band_floor_m, band_sigmas sigma_z(z)) of the
     sensor ``model``; the floor covers real tables that are not flat to the sensor's noise (cloth,
@@ -166,14 +176,18 @@ def fit_table_plane(points: np.ndarray, model: SensorModel, *, band_sigmas: floa
         ValueError: fewer than 100 points; no plane holds ``min_inlier_fraction`` of the points;
             the plane is seen edge-on (tilt above ``max_tilt_deg``).
     """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    pts = pts[np.isfinite(pts[:, 0]) & np.isfinite(pts[:, 1]) & np.isfinite(pts[:, 2]) & (pts[:, 2] > 0)]
-    if pts.shape[0] < 100:
-        raise ValueError(f'only {pts.shape[0]} valid depth points: cannot estimate the table plane '
+    cloud = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    keep = np.empty(cloud.shape[0], dtype=bool)
+    _usable_points(cloud, np.ones(cloud.shape[0], dtype=bool) if mask is None else
+                   np.ascontiguousarray(mask, dtype=bool).reshape(-1), keep)
+    rows = np.flatnonzero(keep)  # the usable points, in order
+    if rows.size < 100:
+        raise ValueError(f'only {rows.size} valid depth points: cannot estimate the table plane '
                          '(give table_plane, or check the depth image)')
     rng = np.random.default_rng(seed)
-    if pts.shape[0] > max_points:
-        pts = pts[rng.choice(pts.shape[0], max_points, replace=False)]
+    if rows.size > max_points:
+        rows = rows[rng.choice(rows.size, max_points, replace=False)]
+    pts = cloud[rows]
     band = np.maximum(band_floor_m, band_sigmas * model.sigma(pts[:, 2]))
     triples = pts[rng.integers(0, pts.shape[0], size=(iterations, 3))]
     subset = rng.permutation(pts.shape[0])[:score_points]

@@ -47,3 +47,20 @@ def test_the_sampling_threads_end() -> None:
     for thread in [t for t in threading.enumerate() if t.name == 'pf-samples']:
         thread.join(timeout=30.0)
         assert not thread.is_alive()
+
+
+@pytest.mark.parametrize('shape', [(1, 1), (7, 3), (64, 200), (300, 17)])
+def test_the_gil_free_triangular_product_is_scipys(shape: tuple[int, int]) -> None:
+    """The samples' triangular product through ctypes (which releases the GIL) is scipy's strmm bit for bit."""
+    from scipy.linalg.blas import strmm
+
+    from gpis_grasp_ros.core.gpis.posterior import _lower_trmm
+
+    m, n = shape
+    rng = np.random.default_rng(m * 1000 + n)
+    a = np.asfortranarray(np.tril(rng.standard_normal((m, m))), dtype=np.float32)
+    b = rng.standard_normal((n, m)).astype(np.float32).T  # Fortran (m, n), as sample_deviations passes it
+    expected = strmm(1.0, a, b.copy(order='F'), side=0, lower=1)
+    assert np.array_equal(_lower_trmm(a, b), expected)
+    with pytest.raises(ValueError, match='Fortran-ordered float32'):
+        _lower_trmm(np.ascontiguousarray(a) if m > 1 else a.astype(np.float64), b)

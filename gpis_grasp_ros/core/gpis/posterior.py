@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes
 import math
 import threading
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg.blas import strmm
+from scipy.linalg import cython_blas
 
 from gpis_grasp_ros.core.gpis.hyperparameters import HyperparameterFit
 from gpis_grasp_ros.core.gpis.kernel import KernelParams, _cross_joint
@@ -15,6 +16,40 @@ from gpis_grasp_ros.core.gpis.observations import _Observations
 from gpis_grasp_ros.core.grid import GridGeometry
 
 _FACTOR_LOCK = threading.Lock()  # guards the float32 factor's one-time construction
+
+
+def _blas_strmm() -> ctypes._CFuncPtr:
+    """The BLAS ``strmm`` scipy links, called through ctypes: unlike scipy's Python wrapper, which holds
+    the GIL for the whole product, a ctypes call releases it, so samples drawn on one thread do not stop the
+    planner's Python on another."""
+    api = ctypes.pythonapi
+    api.PyCapsule_GetName.restype = ctypes.c_char_p
+    api.PyCapsule_GetName.argtypes = [ctypes.py_object]
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    capsule = cython_blas.__pyx_capi__['strmm']
+    address = api.PyCapsule_GetPointer(capsule, api.PyCapsule_GetName(capsule))
+    if not address:
+        raise RuntimeError('scipy.linalg.cython_blas has no strmm')
+    char, int_p, ptr = ctypes.c_char_p, ctypes.POINTER(ctypes.c_int), ctypes.c_void_p
+    return ctypes.CFUNCTYPE(None, char, char, char, char, int_p, int_p, ctypes.POINTER(ctypes.c_float), ptr, int_p,
+                            ptr, int_p)(address)
+
+
+_STRMM = _blas_strmm()
+
+
+def _lower_trmm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """B := A B in place for A (m, m) lower triangular and B (m, n), both float32 in Fortran order; returns B."""
+    if not (a.dtype == b.dtype == np.float32 and a.flags.f_contiguous and b.flags.f_contiguous
+            and a.shape[0] == a.shape[1] == b.shape[0]):
+        raise ValueError(f'TRMM needs Fortran-ordered float32 A (m, m) and B (m, n), got {a.shape} and {b.shape}')
+    m, n = b.shape
+    if m and n:
+        _STRMM(b'L', b'L', b'N', b'N', ctypes.byref(ctypes.c_int(m)), ctypes.byref(ctypes.c_int(n)),
+               ctypes.byref(ctypes.c_float(1.0)), a.ctypes.data, ctypes.byref(ctypes.c_int(m)), b.ctypes.data,
+               ctypes.byref(ctypes.c_int(m)))
+    return b
 
 
 @dataclass
@@ -103,7 +138,7 @@ class GpisPosterior:
                 self._cov_factor_t32 = (np.asfortranarray(factor, dtype=np.float32) if self._cov_factor_lower
                                         else np.ascontiguousarray(factor.T, dtype=np.float32))
         if self._cov_factor_lower:  # (L eps^T)^T: eps^T is eps's Fortran view, the result's transpose C-ordered
-            return strmm(1.0, self._cov_factor_t32, eps.astype(np.float32).T, side=0, lower=1, overwrite_b=1).T
+            return _lower_trmm(self._cov_factor_t32, eps.astype(np.float32).T).T
         return eps.astype(np.float32) @ self._cov_factor_t32
 
     def center_of_mass(self) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -15,6 +16,18 @@ from gpis_grasp_ros.core.sensing.pixel_kernels import nan_to_num
 
 if TYPE_CHECKING:
     from gpis_grasp_ros.core.sensing.params import SensingParams
+
+
+@functools.lru_cache(maxsize=4)
+def _rays(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> np.ndarray:
+    u = (np.arange(width, dtype=np.float64) - cx) / fx
+    v = (np.arange(height, dtype=np.float64) - cy) / fy
+    out = np.empty((height, width, 3))
+    out[..., 0] = u[None, :]
+    out[..., 1] = v[:, None]
+    out[..., 2] = 1.0
+    out.setflags(write=False)
+    return out
 
 
 @dataclass(frozen=True)
@@ -37,14 +50,9 @@ class CameraIntrinsics:
             raise ValueError(f'image size must be positive, got {self.width} x {self.height}')
 
     def rays(self) -> np.ndarray:
-        """(H, W, 3) camera-frame rays ((u - cx) / fx, (v - cy) / fy, 1) of every pixel."""
-        u = (np.arange(self.width, dtype=np.float64) - self.cx) / self.fx
-        v = (np.arange(self.height, dtype=np.float64) - self.cy) / self.fy
-        out = np.empty((self.height, self.width, 3))
-        out[..., 0] = u[None, :]
-        out[..., 1] = v[:, None]
-        out[..., 2] = 1.0
-        return out
+        """(H, W, 3) camera-frame rays ((u - cx) / fx, (v - cy) / fy, 1) of every pixel (read-only: the same array
+        for every frame of a camera)."""
+        return _rays(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Camera-frame points (..., 3) (m) → pixel coordinates (..., 2) as (u, v)."""

@@ -53,9 +53,9 @@ def _table_frame(points: np.ndarray, valid: np.ndarray, params: SensingParams) -
             raise ValueError(f'table_depth_m must be positive metres, got {params.table_depth_m}')
         frame = TableFrame.from_plane(0.0, 0.0, -1.0, float(params.table_depth_m))
     else:
-        return fit_table_plane(masked_rows(points, valid), params.sensor, band_sigmas=params.plane_band_sigmas,
+        return fit_table_plane(points, params.sensor, band_sigmas=params.plane_band_sigmas,
                                band_floor_m=params.plane_band_floor_m, min_inlier_fraction=params.min_plane_fraction,
-                               max_tilt_deg=params.max_tilt_deg)
+                               max_tilt_deg=params.max_tilt_deg, mask=valid)
     if frame.tilt_deg > params.max_tilt_deg:
         raise ValueError(f'the given table plane is seen at {frame.tilt_deg:.0f} degrees (more than '
                          f'{params.max_tilt_deg:.0f}): edge-on')
@@ -106,7 +106,7 @@ def fit_table(frames: AveragedFrames, intrinsics: CameraIntrinsics,
                          '(check table_plane / table_depth_m, or the depth image)')
     rms = float(np.sqrt(np.mean(meas.height[inlier] ** 2)))
     h_thr = max(params.height_threshold, 2.0 * rms)
-    support = target_support(inlier, points, table, rays, params)
+    support = target_support(inlier, points, table, rays, params, intrinsics, float(np.max(band)))
     fit = TableFit(table, rays, ray_n, band, inlier, h_thr, support, frame_chromaticity(frames.rgb_mean, inlier),
                    noise_ratio(meas.height, meas.s_h, inlier), 0.0, rim_feet(inlier, meas, table))
     return fit._replace(footprint=pixel_footprint(frames.z_mean, fit, intrinsics)), meas
@@ -130,14 +130,15 @@ def noise_ratio(height: np.ndarray, s_h: np.ndarray, inlier: np.ndarray) -> floa
 
 
 def target_support(inlier: np.ndarray, points: np.ndarray, table: TableFrame, rays: np.ndarray,
-                   params: SensingParams) -> np.ndarray:
+                   params: SensingParams, intrinsics: CameraIntrinsics, band_m: float) -> np.ndarray:
     """The plane's inliers of the table that supports the target: those within ``SUPPORT_RADIUS_M`` of the
     target point in the table plane (``target`` ``pixel``: where its ray meets the plane; ``table``: the
     point), all inliers for the other targets or when fewer than ``SUPPORT_MIN_PX`` lie that close.
 
     The plane may hold several surfaces - a board on a table, a sheet on a cloth, the world beyond the
     table's edge flattened into the plane by a depth filter - and the colour the objects stand out from is
-    that of the surface under them; a crop of the frame around the target must not change it."""
+    that of the surface under them; a crop of the frame around the target must not change it. Only the pixels
+    that can hold such an inlier are looked at (:func:`_support_box`; ``band_m``: the largest inlier band, m)."""
     if params.target not in ('pixel', 'table') or SUPPORT_RADIUS_M <= 0:
         return inlier
     if params.target == 'pixel':
@@ -150,13 +151,34 @@ def target_support(inlier: np.ndarray, points: np.ndarray, table: TableFrame, ra
         point = table.to_table(hit_pt)[0]
     else:
         point = np.asarray(params.target_point, dtype=np.float64)
-    xy = table.to_table(masked_rows(points, inlier))[0]
+        hit_pt = table.to_camera(point)
+    rows, cols = _support_box(hit_pt, SUPPORT_RADIUS_M + band_m, intrinsics)
+    near_inlier = inlier[rows, cols]
+    xy = table.to_table(masked_rows(points[rows, cols], near_inlier))[0]
     near = norm_of([xy[:, 0] - point[0], xy[:, 1] - point[1]]) <= SUPPORT_RADIUS_M
     if near.sum() < SUPPORT_MIN_PX:
         return inlier
     out = np.zeros_like(inlier)
-    out[inlier] = near
+    box = out[rows, cols]
+    box[near_inlier] = near
     return out
+
+
+def _support_box(centre: np.ndarray, reach_m: float, intrinsics: CameraIntrinsics) -> tuple[slice, slice]:
+    """(rows, columns) of the image holding every pixel whose point lies within ``reach_m`` of the camera-frame point
+    ``centre``: the box of the projected corners of the cube around it (the image of the ball lies in the image of
+    the cube, the convex hull of its corners' images, when the cube is in front of the camera), one pixel wider;
+    the whole image when the cube reaches behind the camera."""
+    corners = np.asarray(centre, dtype=np.float64) + reach_m * np.array(
+        [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    if not (np.all(np.isfinite(corners)) and corners[:, 2].min() > 1e-6):
+        return slice(0, intrinsics.height), slice(0, intrinsics.width)
+    uv = intrinsics.project(corners)
+    u0 = int(np.clip(math.floor(uv[:, 0].min()) - 1, 0, intrinsics.width))
+    u1 = int(np.clip(math.ceil(uv[:, 0].max()) + 2, 0, intrinsics.width))
+    v0 = int(np.clip(math.floor(uv[:, 1].min()) - 1, 0, intrinsics.height))
+    v1 = int(np.clip(math.ceil(uv[:, 1].max()) + 2, 0, intrinsics.height))
+    return slice(v0, v1), slice(u0, u1)
 
 
 def pixel_footprint(z_mean: np.ndarray, fit: TableFit, intrinsics: CameraIntrinsics,
