@@ -98,17 +98,21 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     m_y, m_x = geometry.shape
     fine = GridGeometry(geometry.origin_x, geometry.origin_y, geometry.resolution / sub, m_x * sub, m_y * sub,
                         geometry.z, geometry.frame_id, geometry.rotation)
-    points = fine.cell_centers()
 
     def pixel(pts: np.ndarray, h: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return intrinsics.pixel_index(fine.to_sensor(pts, h))
 
     covered = np.repeat(np.repeat(cells, sub, axis=0), sub, axis=1)  # the asked cells' points only
-    u, v, inside = pixel(points[covered], 0.0)
-    covered[covered] = inside & above[v, u]
+    rows, cols = np.nonzero(covered)  # their centres, as fine.cell_centers() gives them, without the others
+    points = np.stack([fine.origin_x + (np.arange(fine.width) + 0.5) * fine.resolution,
+                       np.zeros(fine.width)], axis=-1)[cols]
+    points[:, 1] = (fine.origin_y + (np.arange(fine.height) + 0.5) * fine.resolution)[rows]
+    u, v, inside = pixel(points, 0.0)
+    seen = inside & above[v, u]
+    covered[covered] = seen
     if not covered.any():
         return np.zeros((m_y, m_x))
-    todo = points[covered]
+    todo = points[seen]
     top = float(np.max(height[above]))
     n_h = int(np.clip(math.ceil(top * max(tan_max, 1e-3) / max(tol_m, 1e-6)) + 1, 2, max_samples))
     under = under_seen_surface(np.ascontiguousarray(todo), np.linspace(0.0, top, n_h), fine.rotation_matrix,
@@ -119,11 +123,16 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     # what hides it (highest surface within window_m of the pixel looking at it) lands on the table beyond,
     # not on the object (a lower part of the object behind a taller one is object, not table)
     k = max(3, 2 * int(round(0.5 * window_m / max(tol_m, 1e-6))) + 1)
-    local_top = cv2.dilate(np.where(above, height, 0.0).astype(np.float32),
-                           cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
     rest = np.flatnonzero(~under)
     u, v, _ = pixel(todo[rest], 0.0)
-    u, v, inside = pixel(todo[rest], local_top[v, u].astype(np.float64))
+    if rest.size:  # the k x k maximum at those pixels: the dilation of the box holding their neighbourhoods
+        r0, r1 = max(int(v.min()) - k // 2, 0), min(int(v.max()) + k // 2 + 1, above.shape[0])
+        c0, c1 = max(int(u.min()) - k // 2, 0), min(int(u.max()) + k // 2 + 1, above.shape[1])
+        local_top = cv2.dilate(np.where(above[r0:r1, c0:c1], height[r0:r1, c0:c1], 0.0).astype(np.float32),
+                               cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+        u, v, inside = pixel(todo[rest], local_top[v - r0, u - c0].astype(np.float64))
+    else:
+        inside = np.zeros(0, dtype=bool)
     under[rest[inside & above[v, u]]] = True
     hidden = covered.copy()
     hidden[covered] = ~under
