@@ -35,9 +35,6 @@ class Background[T]:
         finally:
             self._cpu = time.thread_time() - start
 
-    def done(self) -> bool:
-        return not self._thread.is_alive()
-
     def cpu_time(self) -> float:
         """CPU time (s) of the call so far."""
         if self._thread.is_alive():

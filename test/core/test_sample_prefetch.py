@@ -64,3 +64,20 @@ def test_the_gil_free_triangular_product_is_scipys(shape: tuple[int, int]) -> No
     assert np.array_equal(_lower_trmm(a, b), expected)
     with pytest.raises(ValueError, match='Fortran-ordered float32'):
         _lower_trmm(np.ascontiguousarray(a) if m > 1 else a.astype(np.float64), b)
+
+
+def test_background_returns_raises_and_counts_its_cpu() -> None:
+    """A background call gives its value, or its exception in the caller; its CPU time is its own thread's."""
+    from gpis_grasp_ros.core.background import Background
+
+    def busy(n: int) -> int:
+        return int(np.sum(np.arange(n) % 7))
+
+    job = Background(busy, 3_000_000)
+    assert job.result() == busy(3_000_000)
+    assert 0.0 < job.cpu_time() < 60.0
+    idle = Background(lambda: 5)
+    assert idle.result() == 5 and idle.cpu_time() < job.cpu_time()
+    failing = Background(lambda: 1 / 0, name='failing')
+    with pytest.raises(ZeroDivisionError):
+        failing.result()
