@@ -177,6 +177,8 @@ def fit_table_plane(points: np.ndarray, model: SensorModel, *, band_sigmas: floa
             the plane is seen edge-on (tilt above ``max_tilt_deg``).
     """
     cloud = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    if mask is not None and np.size(mask) != cloud.shape[0]:
+        raise ValueError(f'mask {np.shape(mask)} does not match the cloud {np.shape(points)}')
     keep = np.empty(cloud.shape[0], dtype=bool)
     _usable_points(cloud, np.ones(cloud.shape[0], dtype=bool) if mask is None else
                    np.ascontiguousarray(mask, dtype=bool).reshape(-1), keep)

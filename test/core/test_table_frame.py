@@ -294,3 +294,48 @@ def test_ray_intersection_equals_the_array_code():
     for r, w, h in ((rays, want, hit), (rays[:, ::3], want[:, ::3], hit[:, ::3]), (rays[3, 4], want[3, 4], hit[3, 4])):
         got, got_hit = table.ray_intersection(r)
         assert np.array_equal(got, w, equal_nan=True) and np.array_equal(got_hit, h)
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_fit_of_a_masked_organised_cloud_is_the_fit_of_its_masked_points(seed):
+    """Sampling the mask's pixels before gathering their points gives the fit of ``points[mask]``, exactly."""
+    rng = np.random.default_rng(seed)
+    scene = TiltedScene(20.0 + 15.0 * seed)
+    pts = scene.to_camera(rng.uniform(-0.3, 0.3, (120 * 160, 2))).reshape(120, 160, 3)
+    pts = pts + 0.001 * rng.standard_normal(pts.shape)
+    pts[rng.uniform(size=(120, 160)) < 0.1] = np.nan  # no return
+    mask = rng.uniform(size=(120, 160)) < 0.8
+    model = SensorModel()
+    a = fit_table_plane(pts, model, mask=mask, max_points=5000, seed=seed)
+    b = fit_table_plane(pts[mask], model, max_points=5000, seed=seed)
+    assert a.normal == b.normal and a.offset_m == b.offset_m and a.inlier_fraction == b.inlier_fraction
+    with pytest.raises(ValueError, match='does not match'):
+        fit_table_plane(pts, model, mask=mask[:-1])
+
+
+@pytest.mark.parametrize('tilt', [0.0, 30.0, 55.0])
+def test_support_inliers_found_in_their_box_are_those_of_the_whole_frame(tilt):
+    """The support (the table's inliers within its radius of the target) looked for in the image box of the ball
+    around the target point equals the same test over every inlier of the frame."""
+    from gpis_grasp_ros.core.sensing import table as table_mod
+    from gpis_grasp_ros.core.sensing.camera import average_frames, validate_frames
+    from gpis_grasp_ros.core.sensing.params import SUPPORT_RADIUS_M
+    from gpis_grasp_ros.core.sensing.pixel_kernels import masked_rows
+
+    scene = TiltedScene(tilt, boxes=[BOX])
+    rgb, depth, _ = scene.frames(3)
+    h, w = depth.shape[1:]
+    for u, v in ((w // 2, h // 2), (w // 6, h // 5), (w - 3, h - 3)):
+        params = SensingParams(target='pixel', target_point=(float(u), float(v)))
+        frames = average_frames(*validate_frames(rgb, depth, scene.intrinsics), params)
+        fit, meas = table_mod.fit_table(frames, scene.intrinsics, params)
+        hit, ok = fit.table.ray_intersection(fit.rays[v, u])
+        assert ok
+        point = fit.table.to_table(hit)[0]
+        xy = fit.table.to_table(masked_rows(meas.points, fit.inlier))[0]
+        near = np.hypot(xy[:, 0] - point[0], xy[:, 1] - point[1]) <= SUPPORT_RADIUS_M
+        expected = np.zeros_like(fit.inlier)
+        expected[fit.inlier] = near
+        if near.sum() < table_mod.SUPPORT_MIN_PX:
+            expected = fit.inlier
+        assert np.array_equal(fit.support, expected)
