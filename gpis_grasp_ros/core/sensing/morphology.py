@@ -17,6 +17,19 @@ def nearest_pixel(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return dist, nearest_at(...)
 
 
+def box_max_at(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, k: int) -> np.ndarray:
+    """The maximum of ``image`` (H x W, float32) over the k x k window (odd ``k``) around each pixel (``rows``,
+    ``cols``): ``cv2.dilate`` with a k x k rectangle read at those pixels, the dilation computed on the box that holds
+    their windows only (the image beyond it is in none of them; at the image's edge the dilation's border applies
+    as on the whole image)."""
+    if rows.size == 0:
+        return np.zeros(0, dtype=image.dtype)
+    r0, r1 = max(int(rows.min()) - k // 2, 0), min(int(rows.max()) + k // 2 + 1, image.shape[0])
+    c0, c1 = max(int(cols.min()) - k // 2, 0), min(int(cols.max()) + k // 2 + 1, image.shape[1])
+    box = cv2.dilate(np.ascontiguousarray(image[r0:r1, c0:c1]), cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    return box[rows - r0, cols - c0]
+
+
 def nearest_pixel_lookup(mask: np.ndarray):
     """:func:`nearest_pixel`'s distances, and a function giving the (row, column) of the nearest True pixel at the
     pixels an index selects (``nearest_at((vs, us))`` = ``nearest[vs, us]``) without the whole H x W x 2 array."""

@@ -13,7 +13,7 @@ from scipy.special import ndtr
 from gpis_grasp_ros.core.noise_model import SensorModel
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.evidence import Evidence
-from gpis_grasp_ros.core.sensing.morphology import _filled, nearest_pixel_lookup
+from gpis_grasp_ros.core.sensing.morphology import _filled, box_max_at, nearest_pixel_lookup
 from gpis_grasp_ros.core.sensing.params import (
     MISSING_BRIDGE_M,
     MISSING_HEIGHT_WINDOW_M,
@@ -75,8 +75,6 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     if not missing.any() or not above.any():
         return (out, tested) if return_tested else out
     k = max(3, 2 * int(round(0.5 * window_m / max(footprint_m, 1e-6))) + 1)
-    h_above = np.where(above, nan_to_num(height), 0.0).astype(np.float32)
-    top = cv2.dilate(h_above, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
     dist_px, nearest_at = nearest_pixel_lookup(above)
     n_reg, region = cv2.connectedComponents(missing.astype(np.uint8), connectivity=8)
     touching = np.zeros(n_reg, dtype=bool)
@@ -86,7 +84,8 @@ def _missing_height(height: np.ndarray, above: np.ndarray, missing: np.ndarray, 
     if vs.size == 0:
         return (out, tested) if return_tested else out
     near = nearest_at((vs, us))
-    top_h = top[near[:, 0], near[:, 1]].astype(np.float64)
+    top_h = box_max_at(np.where(above, nan_to_num(height), 0.0).astype(np.float32), near[:, 0], near[:, 1],
+                       k).astype(np.float64)
     ray = rays[vs, us]
     ray_n = ray @ table.n
     ok = (ray_n < -1e-9) & (top_h > 0)

@@ -12,6 +12,7 @@ import numpy as np
 from gpis_grasp_ros.core.grid import GridGeometry
 from gpis_grasp_ros.core.sensing.camera import AveragedFrames, CameraIntrinsics
 from gpis_grasp_ros.core.sensing.clear_body import Target, _clear_body_cells, prism_alternatives, prism_footprint
+from gpis_grasp_ros.core.sensing.morphology import box_max_at
 from gpis_grasp_ros.core.sensing.occlusion import Feet
 from gpis_grasp_ros.core.sensing.params import HIDDEN_SUBCELLS, MISSING_HEIGHT_WINDOW_M, SensingParams
 from gpis_grasp_ros.core.sensing.pixel_kernels import (
@@ -104,9 +105,9 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
 
     covered = np.repeat(np.repeat(cells, sub, axis=0), sub, axis=1)  # the asked cells' points only
     rows, cols = np.nonzero(covered)  # their centres, as fine.cell_centers() gives them, without the others
-    points = np.stack([fine.origin_x + (np.arange(fine.width) + 0.5) * fine.resolution,
-                       np.zeros(fine.width)], axis=-1)[cols]
-    points[:, 1] = (fine.origin_y + (np.arange(fine.height) + 0.5) * fine.resolution)[rows]
+    xs = fine.origin_x + (np.arange(fine.width) + 0.5) * fine.resolution
+    ys = fine.origin_y + (np.arange(fine.height) + 0.5) * fine.resolution
+    points = np.stack([xs[cols], ys[rows]], axis=-1)
     u, v, inside = pixel(points, 0.0)
     seen = inside & above[v, u]
     covered[covered] = seen
@@ -125,14 +126,8 @@ def _hidden_fraction(geometry: GridGeometry, intrinsics: CameraIntrinsics, foot_
     k = max(3, 2 * int(round(0.5 * window_m / max(tol_m, 1e-6))) + 1)
     rest = np.flatnonzero(~under)
     u, v, _ = pixel(todo[rest], 0.0)
-    if rest.size:  # the k x k maximum at those pixels: the dilation of the box holding their neighbourhoods
-        r0, r1 = max(int(v.min()) - k // 2, 0), min(int(v.max()) + k // 2 + 1, above.shape[0])
-        c0, c1 = max(int(u.min()) - k // 2, 0), min(int(u.max()) + k // 2 + 1, above.shape[1])
-        local_top = cv2.dilate(np.where(above[r0:r1, c0:c1], height[r0:r1, c0:c1], 0.0).astype(np.float32),
-                               cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
-        u, v, inside = pixel(todo[rest], local_top[v - r0, u - c0].astype(np.float64))
-    else:
-        inside = np.zeros(0, dtype=bool)
+    local_top = box_max_at(np.where(above, height, 0.0).astype(np.float32), v, u, k)
+    u, v, inside = pixel(todo[rest], local_top.astype(np.float64))
     under[rest[inside & above[v, u]]] = True
     hidden = covered.copy()
     hidden[covered] = ~under

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gpis_grasp_ros.core.sensing.morphology import _flood, _reconstruct
+from gpis_grasp_ros.core.sensing.morphology import _flood, _reconstruct, box_max_at
 from gpis_grasp_ros.core.sensing.pixel_kernels import raster_cells
 from gpis_grasp_ros.core.sensing.ray_kernels import coarse_to_fine
 from gpis_grasp_ros.core.sensing.steps import _group_max
@@ -172,3 +172,19 @@ def test_grid_components_number_as_scipy(shape):
         _, want = connected_components(coo_matrix((np.ones(r.size), (r, c)), shape=(ny * nx, ny * nx)), directed=False)
         got = grid_components(right, down)
         assert got.dtype == want.dtype and np.array_equal(got.ravel(), want)
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_box_max_at_is_the_whole_image_dilation_read_at_the_pixels(seed):
+    """The k x k maximum computed on the box of the asked pixels' windows equals the whole image's dilation there,
+    at the image's edges too."""
+    rng = np.random.default_rng(seed)
+    h, w = rng.integers(5, 60, 2)
+    image = rng.standard_normal((h, w)).astype(np.float32)
+    k = int(rng.choice([3, 5, 9, 21]))
+    n = int(rng.integers(0, 12))
+    rows, cols = rng.integers(0, h, n), rng.integers(0, w, n)
+    if seed == 0:  # the corners
+        rows, cols = np.array([0, 0, h - 1, h - 1]), np.array([0, w - 1, 0, w - 1])
+    whole = cv2.dilate(image, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    assert np.array_equal(box_max_at(image, rows, cols, k), whole[rows, cols])
